@@ -1,0 +1,10 @@
+"""Task 'pick' with the DINO ViT (official checkpoint, frozen) encoder and the transformer BC policy.
+
+Command:  python launch.py --config=configs/pick_dino.py[:paper|small|tiny] --workdir=runs/pick_dino
+Runtime and expected result: see the table in README.md (filled from measured runs).
+"""
+from configs import common
+
+
+def get_config(variant: str = "paper"):
+  return common.get_config("pick", "dino", variant)

@@ -1,0 +1,31 @@
+"""roboshape's one entry point: runs the stages an experiment config names.
+
+  python launch.py --config=configs/pick_savi.py[:variant] [--workdir=runs/pick_savi] [--config.a.b=value ...]
+
+Stages run in the order of `config.stages`; each resumes where a killed run stopped. The config is saved as
+<workdir>/config.json so a notebook can rebuild what ran (`roboshape.load_policy(workdir)`).
+"""
+import sys
+
+from absl import app
+from absl import flags
+from ml_collections import config_flags
+
+from roboshape import cli
+
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Experiment config: configs/<exp>.py[:variant].",
+                                          lock_config=True)
+_WORKDIR = flags.DEFINE_string("workdir", None, "Where the run writes everything (default: runs/<config.name>).")
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  config = _CONFIG.value
+  workdir = _WORKDIR.value or f"runs/{config.name}"
+  stages.run(config, workdir)
+
+
+if __name__ == "__main__":
+  sys.exit(cli.run_app(main, sys.argv))
