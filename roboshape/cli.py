@@ -81,5 +81,5 @@ def run_app(main: Callable[[Sequence[str]], None], argv: Sequence[str]) -> int:
   except UserError as e:
     return _fail(str(e))
   except SystemExit as e:
-    return e.code if isinstance(e.code, int) else 1
+    return 0 if e.code is None else (e.code if isinstance(e.code, int) else 1)
   return 0

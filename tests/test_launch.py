@@ -1,0 +1,69 @@
+"""launch.py: config variants, command-line overrides, and one-line errors for bad input."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from configs import common
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _launch(*args, workdir=None):
+  cmd = [sys.executable, "launch.py", *args]
+  if workdir:
+    cmd.append(f"--workdir={workdir}")
+  return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+
+
+def test_overrides_reach_the_saved_config(tmp_path):
+  out = _launch("--config=configs/pick_savi.py:tiny", "--config.stages=()", "--config.policy.train.steps=7",
+                "--config.env.resolution=32", workdir=str(tmp_path))
+  assert out.returncode == 0, out.stderr
+  saved = json.loads((tmp_path / "config.json").read_text())
+  assert saved["policy"]["train"]["steps"] == 7
+  assert saved["env"]["resolution"] == 32
+  assert saved["task"] == "pick" and saved["encoder"] == "savi" and saved["variant"] == "tiny"
+
+
+def test_unknown_key_names_the_valid_keys_near_it(tmp_path):
+  out = _launch("--config=configs/pick_savi.py:tiny", "--config.policy.train.stepz=3", workdir=str(tmp_path))
+  assert out.returncode == 2
+  lines = out.stderr.strip().splitlines()
+  assert len(lines) == 1, out.stderr
+  assert "unknown config key 'policy.train.stepz'" in lines[0]
+  assert "policy.train.steps" in lines[0]
+  assert not (tmp_path / "config.json").exists()
+
+
+@pytest.mark.parametrize("args, expected", [
+    (("--config=configs/pick_savi.py:huge",), "unknown variant 'huge'"),
+    (("--config=configs/nope.py",), "config file 'configs/nope.py' not found"),
+    (("--config=configs/pick_savi.py:tiny", "--config.seed=abc"), "bad command-line flag"),
+    (("--config=configs/pick_savi.py:tiny", "--config.stages=('collect', 'fly')"), "unknown stage(s) fly"),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, expected):
+  out = _launch(*args, workdir=str(tmp_path))
+  assert out.returncode == 2
+  assert out.stderr.count("\n") == 1 and expected in out.stderr, out.stderr
+  assert "Traceback" not in out.stderr
+
+
+def test_variants_scale_the_experiment():
+  sizes = {v: common.get_config("push", "savi", v).data.train_episodes for v in common.VARIANTS}
+  assert sizes["paper"] == 2000 and sizes["tiny"] < sizes["small"] < sizes["paper"]
+  assert "pretrain" not in common.get_config("push", "dino", "tiny").stages
+  assert "pretrain" in common.get_config("push", "savi", "tiny").stages
+
+
+def test_every_experiment_config_loads():
+  for task in common.TASKS:
+    for encoder in common.ENCODERS:
+      path = os.path.join(ROOT, "configs", f"{task}_{encoder}.py")
+      namespace = {}
+      with open(path) as f:
+        exec(compile(f.read(), path, "exec"), namespace)  # pylint: disable=exec-used
+      config = namespace["get_config"]("tiny")
+      assert (config.task, config.encoder) == (task, encoder)
