@@ -1,0 +1,79 @@
+"""R3M: the frozen ResNet of the official R3M checkpoints, run in Flax.
+
+  enc = load_encoder(config.baselines.r3m, resolution=64)
+  tokens, _ = enc.step(enc.params, enc.init_state(B), frames)   # uint8 [B, H, W, 3] -> float32 [B, 1, D]
+
+The official `model.pt` is a dict whose "r3m" entry is the state_dict of a DataParallel-wrapped model: the visual
+ResNet under "module.convnet.", language heads beside it (ignored). Preprocessing is R3M's own: pixels in
+[0, 255] are scaled to [0, 1], resized to 224 x 224 and ImageNet-normalised inside the encoder. D = 512 for
+ResNet-18/34 and 2048 for ResNet-50.
+"""
+import functools
+import os
+
+import jax
+import jax.numpy as jnp
+
+from roboshape.baselines import convert
+from roboshape.baselines import preprocess
+from roboshape.baselines import resnet
+from roboshape.cli import UserError
+from roboshape.models.encoder import FrozenEncoder
+
+DOWNLOAD_PAGE = "https://github.com/facebookresearch/r3m (load_r3m downloads it; or fetch model.pt by hand)"
+_PREFIX = "module.convnet."
+_NAMES = {"resnet18": "R3M ResNet-18", "resnet34": "R3M ResNet-34", "resnet50": "R3M ResNet-50"}
+
+
+def default_path(arch: str) -> str:
+  """Where the R3M package caches its weights: ~/.r3m/r3m_{18,34,50}/model.pt."""
+  return os.path.join(os.path.expanduser("~"), ".r3m", f"r3m_{arch[len('resnet'):]}", "model.pt")
+
+
+def _step(model, input_size, params, state, frames):
+  """uint8 [B, H, W, 3] -> (tokens float32 [B, 1, D], state)."""
+  features = model.apply(params, preprocess.imagenet_input(frames, input_size))
+  return features[:, None, :], state
+
+
+def load_params(path: str, arch: str):
+  """(ResNet module, Flax variables {"params", "batch_stats"}) from an official R3M model.pt."""
+  what = _NAMES[arch]
+  state = convert.load_state(path, what=what, download=DOWNLOAD_PAGE)
+  if "r3m" not in state:
+    keys = ", ".join(sorted(map(str, state))[:6])
+    raise UserError(f"{path} is not an R3M checkpoint: it has no 'r3m' entry (its keys: {keys})")
+  tensors = convert.to_numpy(state["r3m"], prefix=_PREFIX)
+  model = resnet.resnet(arch)
+  template = jax.eval_shape(model.init, jax.random.key(0), jnp.zeros((1, 64, 64, 3), jnp.float32))
+  convert.check_keys(tensors, template, path=path, what=what)
+  return model, convert.to_flax(tensors, template)
+
+
+def load_encoder(cfg, resolution: int) -> FrozenEncoder:
+  """The frozen R3M encoder of `cfg` (config.baselines.r3m: arch, path, input_size) for square frames.
+
+  Args:
+    cfg: arch is "resnet18", "resnet34" or "resnet50"; path "" means `default_path(arch)`; input_size is the
+      side frames are resized to (224, as R3M was trained; 0 keeps the frames' own size).
+    resolution: the side of the frames the encoder will see.
+
+  Raises:
+    UserError: unknown arch, a missing weight file, or a file of another model.
+  """
+  if cfg.arch not in resnet.ARCHS:
+    raise UserError(f"unknown R3M arch {cfg.arch!r}; choose one of {', '.join(resnet.ARCHS)}")
+  input_size = int(cfg.get("input_size", 224))
+  if (input_size or resolution) < 32:
+    raise UserError(f"R3M needs inputs of at least 32 x 32 pixels, got {input_size or resolution}")
+  path = os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
+  model, params = load_params(path, cfg.arch)
+  return FrozenEncoder(
+      name="r3m",
+      params=params,
+      step=functools.partial(_step, model, input_size),
+      init_state=lambda batch_size: (),
+      num_tokens=1,
+      token_dim=resnet.output_dim(cfg.arch),
+      identity=convert.file_identity(path, cfg.arch, f"input{input_size or resolution}"),
+  )
