@@ -1,0 +1,304 @@
+"""SimPool: N simulator worker processes behind a numpy API (contract A).
+
+The parent never imports sapien or mani_skill: each worker is a fresh interpreter (`python -m
+roboshape.sim.worker`), so whatever the parent imported (TensorFlow, JAX) stays out of it. A worker that dies is
+reported as SimWorkerError with the tail of its stderr, within about a second; a worker that stops answering is
+killed after a timeout. Both never hang the parent.
+
+  with SimPool(EnvSpec("pick"), num_workers=2) as pool:
+    for episode in pool.collect(range(10)):     # oracle demos, in completion order
+      ...
+    frames = pool.reset([0, 1])                 # closed loop: uint8 [2, H, W, 3]
+    out = pool.step(actions)                    # float32 [2, 7] -> image, segmentation, success, done, elapsed
+"""
+import collections
+import dataclasses
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from multiprocessing.connection import Connection, wait
+from typing import Dict, Iterable, Iterator, List, Optional, Sequence
+
+import numpy as np
+
+from roboshape.cli import UserError
+from roboshape.sim.spec import EnvSpec, check_seeds
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+class SimWorkerError(RuntimeError):
+  """A simulator worker died, failed a command or stopped answering; the message holds its stderr tail."""
+
+
+def _tail(path: str, max_lines: int = 15, max_chars: int = 2000) -> str:
+  try:
+    with open(path, "rb") as f:
+      f.seek(0, os.SEEK_END)
+      f.seek(max(0, f.tell() - 16384))
+      text = f.read().decode("utf-8", "replace")
+  except OSError:
+    return "(no stderr)"
+  lines = [l for l in text.splitlines() if l.strip() and "WARNING" not in l]
+  return "\n".join(lines[-max_lines:])[-max_chars:] or "(empty stderr)"
+
+
+class _Proc:
+  """One worker process, its socket and its log file (stdout + stderr)."""
+
+  def __init__(self, index: int, spec: EnvSpec, log_dir: str):
+    self.index = index
+    parent_sock, child_sock = socket.socketpair()
+    self.log_path = os.path.join(log_dir, f"worker{index}.log")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = _ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    env.setdefault("MKL_NUM_THREADS", "1")
+    with open(self.log_path, "wb") as log:
+      self.popen = subprocess.Popen(
+          [sys.executable, "-m", "roboshape.sim.worker", str(child_sock.fileno()),
+           json.dumps(dataclasses.asdict(spec))],
+          stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, pass_fds=(child_sock.fileno(),),
+          env=env, cwd=_ROOT)
+    child_sock.close()
+    self.conn = Connection(parent_sock.detach())
+    self.info: Dict = {}
+
+  def alive(self) -> bool:
+    return self.popen.poll() is None
+
+  def death_message(self, what: str) -> str:
+    try:
+      self.popen.wait(timeout=10)  # a dying simulator may take seconds to free its memory
+    except subprocess.TimeoutExpired:
+      pass
+    code = self.popen.poll()
+    status = "is still running" if code is None else f"exited with code {code}"
+    return f"simulator worker {self.index} (pid {self.popen.pid}) {what}; it {status}. Its stderr ends with:\n" + \
+        _tail(self.log_path)
+
+  def kill(self) -> None:
+    if self.alive():
+      self.popen.kill()
+      try:
+        self.popen.wait(timeout=5)
+      except subprocess.TimeoutExpired:
+        pass
+    self.conn.close()
+
+
+class SimPool:
+  """N workers, each owning one RoboShape env of `spec` (contract A).
+
+  Args:
+    spec: the env every worker builds.
+    num_workers: number of worker processes (0: os.cpu_count()); pool.num_envs equals it.
+    start_timeout: seconds a worker may take to build its env (the first render compiles shaders).
+    step_timeout: seconds a worker may take for one reset / step.
+    episode_timeout: seconds a worker may take for one expert episode in `collect`.
+  """
+
+  def __init__(self, spec: EnvSpec, num_workers: int = 0, start_timeout: float = 300.0,
+               step_timeout: float = 120.0, episode_timeout: float = 600.0):
+    if not isinstance(spec, EnvSpec):
+      raise UserError(f"SimPool needs an EnvSpec, got {type(spec).__name__}")
+    if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
+      raise UserError(f"sim.num_workers must be an int >= 0 (0: one per CPU core), got {num_workers!r}")
+    self.spec = spec
+    self.num_envs = num_workers or os.cpu_count() or 1
+    self.start_timeout, self.step_timeout, self.episode_timeout = start_timeout, step_timeout, episode_timeout
+    self._log_dir = tempfile.mkdtemp(prefix="roboshape_sim_")
+    self._procs: List[Optional[_Proc]] = [None] * self.num_envs
+    self._active = 0
+    self.horizon = 0
+    self.env_version = ""
+    self.restart()
+
+  # ------------------------------------------------------------------------------------------- lifecycle
+  def restart(self) -> None:
+    """Replaces every dead (or never started) worker with a fresh one and waits until they are ready."""
+    fresh = []
+    for i, proc in enumerate(self._procs):
+      if proc is None or not proc.alive():
+        if proc is not None:
+          proc.kill()
+        self._procs[i] = _Proc(i, self.spec, self._log_dir)
+        fresh.append(self._procs[i])
+    deadline = time.time() + self.start_timeout
+    try:
+      for proc in fresh:
+        proc.info = self._recv(proc, max(1.0, deadline - time.time()), "building its env")
+    except (SimWorkerError, UserError):
+      self.close()
+      raise
+    self.horizon = self._procs[0].info["horizon"]
+    self.env_version = self._procs[0].info["env_version"]
+    self._active = 0
+
+  def close(self) -> None:
+    """Asks every worker to exit, then kills what is left."""
+    for proc in self._procs:
+      if proc is not None and proc.alive():
+        try:
+          proc.conn.send(("close", None))
+        except OSError:
+          pass
+    deadline = time.time() + 5
+    for proc in self._procs:
+      if proc is not None:
+        try:
+          proc.popen.wait(timeout=max(0.1, deadline - time.time()))
+        except subprocess.TimeoutExpired:
+          pass
+        proc.kill()
+    self._procs = [None] * self.num_envs
+
+  def __enter__(self) -> "SimPool":
+    return self
+
+  def __exit__(self, *exc) -> None:
+    self.close()
+
+  def __del__(self):
+    try:
+      self.close()
+    except Exception:  # pylint: disable=broad-except
+      pass
+
+  # ------------------------------------------------------------------------------------------- messaging
+  def _proc(self, i: int) -> _Proc:
+    proc = self._procs[i]
+    if proc is None:
+      raise SimWorkerError("the pool is closed; create a new SimPool")
+    return proc
+
+  def _send(self, proc: _Proc, command: str, arg) -> None:
+    try:
+      proc.conn.send((command, arg))
+    except OSError:
+      raise SimWorkerError(proc.death_message(f"died before {command}")) from None
+
+  def _recv(self, proc: _Proc, timeout: float, what: str):
+    """The payload of the worker's next reply; SimWorkerError when it dies, fails or times out."""
+    deadline = time.time() + timeout
+    while True:
+      if proc.conn.poll(min(0.5, max(0.0, deadline - time.time()))):
+        try:
+          status, payload = proc.conn.recv()
+        except (EOFError, OSError):
+          raise SimWorkerError(proc.death_message(f"died while {what}")) from None
+        if status == "ok":
+          return payload
+        if what == "building its env":
+          raise UserError(payload)
+        raise SimWorkerError(f"simulator worker {proc.index} failed while {what}: {payload}")
+      if not proc.alive():
+        raise SimWorkerError(proc.death_message(f"died while {what}"))
+      if time.time() >= deadline:
+        proc.kill()
+        raise SimWorkerError(proc.death_message(f"gave no answer in {timeout:.0f}s while {what} (killed)"))
+
+  # ------------------------------------------------------------------------------------------- collection
+  def collect(self, seeds: Iterable[int]) -> Iterator[dict]:
+    """Runs the oracle expert from each seed; yields episodes (dicts of contract A) in completion order.
+
+    Failed episodes (success False) are yielded too. A worker that dies raises SimWorkerError; after
+    `restart()` the caller may collect the seeds it has not received yet.
+    """
+    pending = collections.deque(check_seeds(seeds))
+    busy: Dict[int, int] = {}  # worker index -> seed
+    self._active = 0
+
+    def feed(i):
+      if pending:
+        seed = pending.popleft()
+        self._send(self._proc(i), "collect", seed)
+        busy[i] = seed
+
+    for i in range(self.num_envs):
+      feed(i)
+    started = {i: time.time() for i in busy}
+    try:
+      while busy:
+        conns = {self._proc(i).conn: i for i in busy}
+        for conn in wait(list(conns), timeout=0.5):
+          i = conns[conn]
+          episode = self._recv(self._proc(i), 1.0, f"collecting seed {busy.pop(i)}")
+          feed(i)
+          started[i] = time.time()
+          yield episode
+        for i in list(busy):
+          proc = self._proc(i)
+          if not proc.alive() and not proc.conn.poll(0):
+            raise SimWorkerError(proc.death_message(f"died while collecting seed {busy[i]}"))
+          if time.time() - started[i] > self.episode_timeout:
+            proc.kill()
+            raise SimWorkerError(proc.death_message(
+                f"gave no episode in {self.episode_timeout:.0f}s for seed {busy[i]} (killed)"))
+    finally:
+      if busy:  # the caller stopped early or a worker failed: drain the others so the pool stays usable
+        for i in list(busy):
+          proc = self._procs[i]
+          if proc is not None and proc.alive():
+            try:
+              self._recv(proc, self.episode_timeout, f"collecting seed {busy[i]}")
+            except (SimWorkerError, UserError):
+              pass
+
+  # ------------------------------------------------------------------------------------------- closed loop
+  def reset(self, seeds: Sequence[int]) -> np.ndarray:
+    """Resets env i from seeds[i] (len(seeds) <= num_envs); returns their first frames uint8 [N, H, W, 3]."""
+    seeds = check_seeds(seeds)
+    if not 0 < len(seeds) <= self.num_envs:
+      raise UserError(f"pool.reset got {len(seeds)} seeds for a pool of {self.num_envs} envs; "
+                      f"pass between 1 and {self.num_envs}")
+    out = self._broadcast("reset", seeds)
+    self._active = len(seeds)
+    return np.stack([o["image"] for o in out])
+
+  def step(self, actions: np.ndarray) -> Dict[str, np.ndarray]:
+    """Executes actions float32 [N, 7] (clipped to [-1, 1]) in the N envs of the last reset.
+
+    Returns image uint8 [N, H, W, 3], segmentation uint8 [N, H, W], success bool [N], done bool [N]
+    (success or horizon) and elapsed int32 [N]. A done env ignores its action and returns its last frame.
+    """
+    if self._active == 0:
+      raise UserError("pool.step before pool.reset: reset the envs with seeds first")
+    actions = np.asarray(actions, np.float32)
+    if actions.shape != (self._active, 7):
+      raise UserError(f"pool.step needs actions of shape ({self._active}, 7), got {actions.shape}")
+    if not np.all(np.isfinite(actions)):
+      raise UserError("pool.step got non-finite actions (NaN or inf)")
+    out = self._broadcast("step", list(actions))
+    return dict(image=np.stack([o["image"] for o in out]),
+                segmentation=np.stack([o["segmentation"] for o in out]),
+                success=np.array([o["success"] for o in out], bool),
+                done=np.array([o["done"] for o in out], bool),
+                elapsed=np.array([o["elapsed"] for o in out], np.int32))
+
+  def _broadcast(self, command: str, args: list) -> List[dict]:
+    procs = [self._proc(i) for i in range(len(args))]
+    sent, errors = [], []
+    for proc, arg in zip(procs, args):
+      try:
+        self._send(proc, command, arg)
+        sent.append(proc)
+      except SimWorkerError as e:
+        errors.append(str(e))
+    out = []
+    for proc in sent:  # read every reply, so no answer is left behind for the next command
+      try:
+        out.append(self._recv(proc, self.step_timeout, command))
+      except SimWorkerError as e:
+        errors.append(str(e))
+    if errors:
+      raise SimWorkerError("\n".join(errors) + "\nCall pool.restart() to replace dead workers.")
+    return out
+
+  def _crash_worker(self, i: int, message: str = "test") -> None:
+    """Test hook: makes worker i print `message` to stderr and exit with code 3, like a crashing simulator."""
+    self._send(self._proc(i), "_crash", message)

@@ -1,0 +1,142 @@
+"""A simulator worker: a fresh python process that owns one RoboShape env and speaks numpy over a socket.
+
+Started by SimPool as `python -m roboshape.sim.worker FD SPEC_JSON` (never by importing the parent's modules, so it
+never imports TensorFlow or JAX). Requests are (command, argument) tuples; replies are ("ok", payload) or
+("error", one-line message). Payloads are numpy arrays and python scalars only.
+
+Commands:
+  collect seed    -> episode dict of contract A (the oracle expert run from `seed`)
+  reset seed      -> frame dict (image, segmentation, success, done, elapsed)
+  step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
+  close           -> exits
+"""
+import json
+import os
+import sys
+import traceback
+
+
+def _one_line(e: BaseException) -> str:
+  text = str(e).strip().splitlines()
+  return f"{type(e).__name__}: {text[0] if text else ''}"
+
+
+class Worker:
+  """One env + its expert; every method returns plain numpy / python values."""
+
+  def __init__(self, spec: dict):
+    import numpy as np  # pylint: disable=import-outside-toplevel
+    import torch  # pylint: disable=import-outside-toplevel
+    torch.set_num_threads(1)
+    import mani_skill  # pylint: disable=import-outside-toplevel
+    from roboshape import envs  # pylint: disable=import-outside-toplevel
+    from roboshape.envs import experts  # pylint: disable=import-outside-toplevel
+    self.np, self.torch = np, torch
+    backend = {"cpu": "physx_cpu", "gpu": "physx_cuda"}.get(spec["sim_backend"], spec["sim_backend"])
+    self.env = envs.make_env(spec["task"], spec["level"], resolution=spec["resolution"],
+                             min_distractors=spec["min_distractors"], max_distractors=spec["max_distractors"],
+                             sim_backend=backend)
+    self.task = self.env.unwrapped
+    self.spec = spec
+    self.horizon = spec["max_episode_steps"] or self.task.HORIZON
+    self.expert = experts.make_expert(spec["task"], self.task.num_envs, self.task.device)
+    self.env_version = f"{envs.ENV_VERSION}+mani_skill-{mani_skill.__version__}"
+    self._frame = None
+    self.elapsed, self.success, self.done = 0, False, True
+
+  def info(self) -> dict:
+    return dict(horizon=self.horizon, env_version=self.env_version, pid=os.getpid())
+
+  def _observe(self, obs):
+    rgb, seg = self.task.frames(obs)
+    return rgb[0], seg[0]
+
+  def _reset(self, seed: int):
+    obs, _ = self.env.reset(seed=int(seed))
+    self.expert.reset()
+    self.elapsed, self.success, self.done = 0, False, False
+    return self._observe(obs)
+
+  def _step(self, action):
+    obs, reward, _, _, info = self.env.step(self.torch.as_tensor(action[None], dtype=self.torch.float32))
+    self.elapsed += 1
+    self.success = bool(info["success"][0])
+    self.done = self.success or self.elapsed >= self.horizon
+    return self._observe(obs), float(reward[0])
+
+  def _frame_dict(self, image, seg) -> dict:
+    self._frame = (image, seg)
+    return dict(image=image, segmentation=seg, success=self.success, done=self.done, elapsed=self.elapsed)
+
+  def reset(self, seed: int) -> dict:
+    return self._frame_dict(*self._reset(seed))
+
+  def step(self, action) -> dict:
+    np = self.np
+    action = np.clip(np.asarray(action, np.float32).reshape(7), -1.0, 1.0)
+    if self.done:
+      if self._frame is None:
+        raise RuntimeError("step before reset: call pool.reset(seeds) first")
+      return dict(image=self._frame[0], segmentation=self._frame[1], success=self.success, done=True,
+                  elapsed=self.elapsed)
+    (image, seg), _ = self._step(action)
+    return self._frame_dict(image, seg)
+
+  def collect(self, seed: int) -> dict:
+    """Runs the oracle expert from `seed` until success or the horizon; the whole episode of contract A."""
+    np = self.np
+    image, seg = self._reset(seed)
+    images, segs, actions, rewards = [image], [seg], [], []
+    while not self.done:
+      action = self.expert.act(self.task.privileged_state()).cpu().numpy().astype(np.float32)[0]
+      (image, seg), reward = self._step(action)
+      images.append(image)
+      segs.append(seg)
+      actions.append(action)
+      rewards.append(reward)
+    return dict(task=self.spec["task"], level=self.spec["level"], seed=int(seed), success=self.success,
+                env_version=self.env_version, terminated=self.success,
+                image=np.stack(images).astype(np.uint8), segmentation=np.stack(segs).astype(np.uint8),
+                action=np.stack(actions).astype(np.float32).reshape(-1, 7),
+                reward=np.asarray(rewards, np.float32))
+
+
+def serve(conn, spec: dict) -> int:
+  """The request loop; returns the process exit code."""
+  try:
+    worker = Worker(spec)
+  except Exception as e:  # pylint: disable=broad-except
+    traceback.print_exc()
+    from roboshape import envs  # pylint: disable=import-outside-toplevel
+    conn.send(("error", envs.explain_construction_error(e)))
+    return 1
+  conn.send(("ok", worker.info()))
+  while True:
+    try:
+      command, arg = conn.recv()
+    except (EOFError, OSError):  # the parent went away
+      return 0
+    if command == "close":
+      conn.send(("ok", None))
+      return 0
+    if command == "_crash":  # test hook: die the way a segfaulting simulator would
+      print(f"roboshape worker: crashing on request: {arg}", file=sys.stderr, flush=True)
+      os._exit(3)  # pylint: disable=protected-access
+    try:
+      if command not in ("collect", "reset", "step"):
+        raise ValueError(f"unknown worker command {command!r}")
+      reply = ("ok", getattr(worker, command)(arg))
+    except Exception as e:  # pylint: disable=broad-except
+      traceback.print_exc()
+      reply = ("error", f"{command}({arg if command != 'step' else '...'}) failed: {_one_line(e)}")
+    conn.send(reply)
+
+
+def main(argv) -> int:
+  from multiprocessing.connection import Connection  # pylint: disable=import-outside-toplevel
+  conn = Connection(int(argv[1]))
+  return serve(conn, json.loads(argv[2]))
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv))

@@ -1,0 +1,127 @@
+"""The numpy bridge to the simulator (contract A): input checks, collection, closed loop, worker failures."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from configs import common
+from roboshape.cli import UserError
+from roboshape.sim import EnvSpec, SimPool, SimWorkerError, check_seeds
+
+RESOLUTION = 32
+EPISODE_KEYS = {"task", "level", "seed", "success", "env_version", "terminated", "image", "segmentation", "action",
+                "reward"}
+
+
+@pytest.fixture(scope="module")
+def pool():
+  with SimPool(EnvSpec("place", resolution=RESOLUTION), num_workers=2) as p:
+    yield p
+
+
+@pytest.fixture(scope="module")
+def episodes(pool):
+  return sorted(pool.collect([3, 4]), key=lambda e: e["seed"])
+
+
+def test_bad_input_fails_in_the_parent_with_a_clear_message():
+  with pytest.raises(UserError, match="unknown task 'stack'.*push, pick, place"):
+    EnvSpec("stack")
+  with pytest.raises(UserError, match="unknown level 'L4'"):
+    EnvSpec("pick", level="L4")
+  with pytest.raises(UserError, match="resolution"):
+    EnvSpec("pick", resolution=4)
+  with pytest.raises(UserError, match="min_distractors"):
+    EnvSpec("pick", min_distractors=3, max_distractors=2)
+  for bad in ([1.5], ["7"], [True], [-1], [2**31]):
+    with pytest.raises(UserError, match="seed"):
+      check_seeds(bad)
+  assert check_seeds(np.arange(3)) == [0, 1, 2]
+
+
+def test_spec_from_config():
+  config = common.get_config("pick", "savi", "tiny")
+  config.env.resolution = 48
+  spec = EnvSpec.from_config(config, level="L2")
+  assert spec == EnvSpec("pick", "L2", 48, 1, 4, 0, "physx_cpu")
+  assert EnvSpec.from_config(config).level == "train"
+
+
+def test_parent_does_not_import_the_simulator():
+  code = "import sys, roboshape.sim; assert not {'sapien', 'mani_skill'} & set(sys.modules), 'simulator imported'"
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  subprocess.run([sys.executable, "-c", code], cwd=root, check=True, env=dict(os.environ, PYTHONPATH=root))
+
+
+def test_collected_episodes_follow_the_contract(pool, episodes):
+  assert [e["seed"] for e in episodes] == [3, 4]
+  for e in episodes:
+    assert set(e) == EPISODE_KEYS
+    steps = len(e["action"])
+    assert 0 < steps <= pool.horizon
+    assert e["task"] == "place" and e["level"] == "train" and e["env_version"] == pool.env_version
+    assert e["success"] and e["terminated"]  # the expert solves these seeds
+    assert e["image"].dtype == np.uint8 and e["image"].shape == (steps + 1, RESOLUTION, RESOLUTION, 3)
+    assert e["segmentation"].dtype == np.uint8 and e["segmentation"].shape == (steps + 1, RESOLUTION, RESOLUTION)
+    assert e["action"].dtype == np.float32 and e["action"].shape == (steps, 7)
+    assert np.all(np.abs(e["action"]) <= 1.0)
+    assert e["reward"].dtype == np.float32 and e["reward"].shape == (steps,) and e["reward"][-1] == 1.0
+    assert {1, 2, 3, 4} <= set(np.unique(e["segmentation"][0]).tolist())
+    assert set(e["action"][:, 6].tolist()) == {-1.0, 1.0}  # the gripper closes and opens again
+
+
+def test_closed_loop_replays_an_expert_episode_bit_for_bit(pool, episodes):
+  e = episodes[0]
+  frames = pool.reset([e["seed"], e["seed"]])
+  assert frames.shape == (2, RESOLUTION, RESOLUTION, 3) and frames.dtype == np.uint8
+  np.testing.assert_array_equal(frames[0], e["image"][0])  # same seed, another process: same first frame
+  np.testing.assert_array_equal(frames[1], e["image"][0])
+  steps = len(e["action"])
+  for t in range(steps):
+    out = pool.step(np.stack([e["action"][t], np.zeros(7, np.float32)]))
+    assert out["elapsed"].tolist() == [t + 1, t + 1]
+  assert out["success"].tolist() == [True, False] and out["done"].tolist() == [True, False]
+  np.testing.assert_array_equal(out["image"][0], e["image"][-1])
+  np.testing.assert_array_equal(out["segmentation"][0], e["segmentation"][-1])
+  again = pool.step(np.ones((2, 7), np.float32))  # a done env ignores its action
+  np.testing.assert_array_equal(again["image"][0], out["image"][0])
+  assert again["elapsed"].tolist() == [steps, steps + 1] and again["done"][0]
+
+
+def test_closed_loop_input_checks(pool):
+  with pytest.raises(UserError, match="seeds for a pool of 2"):
+    pool.reset([1, 2, 3])
+  pool.reset([1])
+  with pytest.raises(UserError, match=r"shape \(1, 7\)"):
+    pool.step(np.zeros((2, 7), np.float32))
+  with pytest.raises(UserError, match="non-finite"):
+    pool.step(np.full((1, 7), np.nan, np.float32))
+  with pytest.raises(UserError, match="not an int"):
+    list(pool.collect([0.5]))
+
+
+def test_env_construction_error_comes_back_as_one_line():
+  spec = EnvSpec("pick", resolution=RESOLUTION)
+  object.__setattr__(spec, "task", "juggle")  # slips past the parent's check, fails inside the worker
+  with pytest.raises(UserError) as info:
+    SimPool(spec, num_workers=1)
+  assert "unknown task 'juggle'" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_dead_worker_raises_with_its_stderr_then_restart(pool):
+  pool.reset([5, 6])
+  pool._crash_worker(1, "boom-1234")  # pylint: disable=protected-access  (prints to stderr, exits with 3)
+  with pytest.raises(SimWorkerError) as info:
+    pool.step(np.zeros((2, 7), np.float32))
+  message = str(info.value)
+  assert "worker 1" in message and "code 3" in message and "boom-1234" in message, message  # its stderr
+  assert "worker 0" not in message and "pool.restart()" in message, message
+  with pytest.raises(SimWorkerError, match="worker 1"):
+    pool.reset([5, 6])
+  alive = pool._procs[0].popen.pid  # pylint: disable=protected-access
+  pool.restart()  # replaces the dead worker only
+  assert pool._procs[0].popen.pid == alive  # pylint: disable=protected-access
+  frames = pool.reset([5, 6])
+  assert frames.shape == (2, RESOLUTION, RESOLUTION, 3)
