@@ -3,3 +3,46 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np  # pylint: disable=wrong-import-position
+import pytest  # pylint: disable=wrong-import-position
+
+
+def _synthetic_episode(seed: int, task: str = "push", resolution: int = 16, num_actions: int = 0,
+                       success: bool = True, level: str = "train") -> dict:
+  """A fake simulator episode (the dict roboshape.sim yields): a red square sliding over a grey table.
+
+  Deterministic per seed; num_actions 0 picks 8-15 actions from the seed. image uint8 [T+1,H,W,3].
+  """
+  rng = np.random.default_rng(seed)
+  steps = num_actions or int(rng.integers(8, 16))
+  size = max(2, resolution // 6)
+  image = np.empty((steps + 1, resolution, resolution, 3), np.uint8)
+  image[:] = (90, 90, 100)
+  image[:, resolution // 2:] = (150, 130, 110)
+  segmentation = np.zeros((steps + 1, resolution, resolution), np.uint8)
+  segmentation[:, resolution // 2:] = 1
+  x0, y0 = rng.integers(0, resolution - size, 2)
+  for t in range(steps + 1):
+    x = (x0 + t) % (resolution - size)
+    image[t, y0:y0 + size, x:x + size] = (200, 30, 30)
+    segmentation[t, y0:y0 + size, x:x + size] = 3
+  return dict(task=task, level=level, seed=int(seed), success=bool(success), env_version="synthetic-1",
+              terminated=bool(success), image=image, segmentation=segmentation,
+              action=rng.uniform(-1, 1, (steps, 7)).astype(np.float32),
+              reward=rng.uniform(0, 1, steps).astype(np.float32))
+
+
+@pytest.fixture(scope="session")
+def synthetic_episode():
+  """The function (seed, task="push", resolution=16, num_actions=0, success=True) -> a fake simulator episode."""
+  return _synthetic_episode
+
+
+@pytest.fixture(scope="session")
+def synthetic_dataset(tmp_path_factory):
+  """Path of a tiny complete RoboShape dataset (task push, 16x16, 4 train + 2 val synthetic episodes)."""
+  from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
+  path = str(tmp_path_factory.mktemp("synthetic_data") / "roboshape_push" / "1.0.0")
+  return rlds.write_dataset(path, {"train": [_synthetic_episode(s) for s in range(4)],
+                                   "val": [_synthetic_episode(1_000_000 + s) for s in range(2)]})

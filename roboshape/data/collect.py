@@ -1,0 +1,254 @@
+"""The "collect" stage: expert demonstrations from the simulator workers into a RoboShape dataset (RLDS in TFDS).
+
+  python launch.py --config=configs/pick_savi.py:small --config.stages=collect --workdir=runs/pick
+
+Seeds: split s uses the candidate seeds SEED_BASES[s], SEED_BASES[s] + 1, ... (train and val never share one) and
+keeps the first N whose expert succeeds, in seed order; failures are counted, recorded in roboshape.json with the
+seed, reported, and replaced by the next seeds. So a config always gives the same episodes, whatever the number of
+workers or the order they finish in.
+
+Processes: the SAPIEN workers (roboshape.sim.SimPool, spawned) run the expert and send numpy episodes; this process
+never imports SAPIEN and writes them with TFDS. Shards are committed atomically in seed order (see rlds.py), so a
+run killed at any moment (SIGKILL included) and started again with the same command re-collects only the seeds
+after the last committed shard: nothing is lost and nothing is written twice. A complete dataset is never
+rewritten; a dataset of another config in the same place is refused.
+"""
+import contextlib
+import errno
+import fcntl
+import os
+import time
+from typing import Any, Dict, Iterator, Mapping
+
+import tqdm
+
+from roboshape import data as data_lib
+from roboshape.cli import UserError
+from roboshape.data import rlds
+
+LEVEL = "train"
+SEED_BASES = {"train": 0, "val": 1_000_000}
+# The fields of a config that decide a dataset's content: a stored dataset must match them all.
+_SUMMARY_FIELDS = ("task", "level", "resolution", "min_distractors", "max_distractors", "max_episode_steps",
+                   "train_episodes", "val_episodes", "train_seed_base", "val_seed_base")
+_MAX_WORKER_RESTARTS = 3
+
+
+def split_targets(config) -> Dict[str, int]:
+  """Episodes per split: train from the config, val = max(min_val_episodes, round(val_fraction * train))."""
+  train = int(config.data.train_episodes)
+  if train < 1:
+    raise UserError(f"config.data.train_episodes must be >= 1 (got {train}).")
+  val = max(int(config.data.min_val_episodes), int(round(float(config.data.val_fraction) * train)))
+  return {"train": train, "val": val}
+
+
+def config_summary(config) -> Dict[str, Any]:
+  """What a dataset is made of: the config fields that change its episodes."""
+  targets = split_targets(config)
+  return {
+      "task": config.task,
+      "level": LEVEL,
+      "resolution": int(config.env.resolution),
+      "min_distractors": int(config.env.min_distractors),
+      "max_distractors": int(config.env.max_distractors),
+      "max_episode_steps": int(config.env.max_episode_steps),
+      "train_episodes": targets["train"],
+      "val_episodes": targets["val"],
+      "train_seed_base": SEED_BASES["train"],
+      "val_seed_base": SEED_BASES["val"],
+  }
+
+
+def config_differences(stored: Mapping[str, Any], wanted: Mapping[str, Any]) -> list:
+  """Human-readable differences, e.g. ["resolution: 32 in the dataset, 64 in the config"]."""
+  return [f"{key}: {stored.get(key)!r} in the dataset, {wanted.get(key)!r} in the config"
+          for key in _SUMMARY_FIELDS if stored.get(key) != wanted.get(key)]
+
+
+def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:
+  """The stored state of the dataset at `path` (None if none); a dataset of another config is a UserError."""
+  state = rlds.load_state(path)
+  if state is not None:
+    differences = config_differences(state["config"], summary)
+    if differences:
+      raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}). Use another "
+                      "--workdir, set --config.data.dir to another folder, or delete that dataset.")
+  return state
+
+
+def _check_workdir_task(config, workdir: str) -> None:
+  """A run's own data folder (config.data.dir empty) must not hold the dataset of another task."""
+  if config.data.dir:
+    return  # a shared folder holds one dataset per task side by side
+  root = data_lib.data_root(config, workdir)
+  mine = data_lib.dataset_name(config.task)
+  if os.path.isdir(root):
+    for name in sorted(os.listdir(root)):
+      if name.startswith("roboshape_") and name != mine:
+        raise UserError(f"workdir {workdir} holds a dataset of another config (task: {name[len('roboshape_'):]!r} "
+                        f"in the dataset, {config.task!r} in the config; {os.path.join(root, name)}). Use another "
+                        "--workdir, or set --config.data.dir to share datasets between experiments.")
+
+
+@contextlib.contextmanager
+def _exclusive(path: str) -> Iterator[None]:
+  """Holds an exclusive lock on the dataset directory (released by the OS even on SIGKILL)."""
+  os.makedirs(path, exist_ok=True)
+  with open(os.path.join(path, ".collect.lock"), "a") as f:
+    try:
+      fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      raise UserError(f"another collection is writing {path} right now; wait for it to finish.") from None
+    try:
+      yield
+    finally:
+      fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _is_worker_error(e: BaseException) -> bool:
+  """roboshape.sim.SimWorkerError (matched by name: tests drive the collector with pools of their own)."""
+  return any(cls.__name__ == "SimWorkerError" for cls in type(e).__mro__)
+
+
+class _SplitCollector:
+  """Collects one split: requests seeds, reorders results by seed, commits shards of successes in seed order."""
+
+  def __init__(self, pool, writer: rlds.DatasetWriter, split: str, progress: bool):
+    self.pool, self.writer, self.split = pool, writer, split
+    info = writer.state["splits"][split]
+    self.target, self.shard_size = info["target"], info["episodes_per_shard"]
+    shards = writer.shards(split)
+    self.kept = writer.num_episodes(split)
+    self.failed = sum(len(s["failed_seeds"]) for s in shards)
+    self.cursor = shards[-1]["next_seed"] if shards else info["seed_base"]  # first seed not committed
+    self.requested_until = self.cursor
+    self.buffer: Dict[int, Any] = {}     # finished seeds >= cursor: episode, or None for a failure
+    self.pending, self.pending_failed = [], []
+    self.frames = 0
+    self.start = time.time()
+    self.new_successes = self.new_failures = 0
+    self.bar = tqdm.tqdm(total=self.target, initial=self.kept, unit="ep", dynamic_ncols=True, disable=not progress,
+                         desc=f"collect {writer.task} {split}")
+
+  def run(self) -> Dict[str, Any]:
+    restarts = 0
+    while self.kept + len(self.pending) < self.target:
+      outstanding = [s for s in range(self.cursor, self.requested_until) if s not in self.buffer]
+      if not outstanding:
+        # Rounds of at most 16 episodes per worker bound the reorder buffer (a slow seed holds back the commits).
+        need = min(self.target - self.kept - len(self.pending), max(64, 16 * getattr(self.pool, "num_envs", 1)))
+        outstanding = list(range(self.requested_until, self.requested_until + need))
+        self.requested_until += need
+      try:
+        for episode in self.pool.collect(outstanding):
+          self._receive(episode)
+      except Exception as e:  # pylint: disable=broad-except
+        if not _is_worker_error(e) or restarts >= _MAX_WORKER_RESTARTS:
+          raise
+        restarts += 1
+        tqdm.tqdm.write(f"[collect] a simulator worker died ({str(e).strip().splitlines()[-1:]}); "
+                        f"restarting it ({restarts}/{_MAX_WORKER_RESTARTS})")
+        self.pool.restart()
+        continue
+      missing = [s for s in outstanding if s not in self.buffer and s >= self.cursor]
+      if missing:
+        raise RuntimeError(f"the simulator pool returned no episode for seeds {missing[:5]}")
+    self.bar.close()
+    elapsed = time.time() - self.start
+    return {"split": self.split, "episodes": self.kept, "failures": self.failed,
+            "new_episodes": self.new_successes, "new_failures": self.new_failures,
+            "frames": self.frames, "seconds": elapsed}
+
+  def _receive(self, episode: Mapping[str, Any]) -> None:
+    seed = int(episode["seed"])
+    if seed < self.cursor or seed in self.buffer or seed >= self.requested_until:
+      return  # a duplicate (e.g. after a worker restart)
+    success = bool(episode["success"])
+    self.buffer[seed] = episode if success else None
+    self.frames += int(episode["image"].shape[0])
+    self.new_successes += success
+    self.new_failures += not success
+    self.failed += not success
+    rate = (self.kept + len(self.pending) + sum(e is not None for e in self.buffer.values()))
+    rate = rate / max(1, rate + self.failed)
+    elapsed = max(1e-9, time.time() - self.start)
+    self.bar.set_postfix_str(f"{(self.new_successes + self.new_failures) / elapsed:.2f} episodes/s, expert success "
+                             f"{100 * rate:.1f}% ({self.failed} failed), {self.frames / elapsed:.0f} frames/s",
+                             refresh=False)
+    self.bar.update(int(success))
+    while self.cursor in self.buffer:
+      item = self.buffer.pop(self.cursor)
+      if item is None:
+        self.pending_failed.append(self.cursor)
+      else:
+        self.pending.append(item)
+      self.cursor += 1
+      if len(self.pending) == self.shard_size or self.kept + len(self.pending) == self.target:
+        self._commit()
+
+  def _commit(self) -> None:
+    try:
+      self.writer.add_shard(self.split, self.pending, self.pending_failed, next_seed=self.cursor)
+    except OSError as e:
+      if e.errno != errno.ENOSPC:
+        raise
+      raise UserError(f"disk full while writing {self.writer.path}: the {self.writer.num_episodes('train')} train "
+                      f"and {self.writer.num_episodes('val')} val episodes committed so far are kept and readable "
+                      "(roboshape.json says complete: false). Free some space and run the same command again "
+                      "to finish.") from None
+    self.kept += len(self.pending)
+    self.pending, self.pending_failed = [], []
+
+
+def collect_dataset(pool, path: str, summary: Mapping[str, Any], targets: Mapping[str, int],
+                    progress: bool = True) -> Dict[str, Any]:
+  """Collects (or finishes) the dataset at `path` with `pool` (anything with `collect(seeds) -> episodes`).
+
+  Returns a report: per split the episodes kept, expert failures and this run's frames and seconds.
+  """
+  with _exclusive(path):
+    state = check_compatible(path, summary)
+    if state is not None and state["complete"]:
+      return {"complete": True, "already_complete": True}
+    version = getattr(pool, "env_version", None)
+    if state is not None and state["env_version"] and version and version != state["env_version"]:
+      raise UserError(f"{path} was partly collected with env version {state['env_version']!r}, the simulator is "
+                      f"now {version!r}: delete it and collect again (or go back to the old roboshape).")
+    writer = rlds.DatasetWriter(path, summary, targets, seed_bases=SEED_BASES)
+    report = {"complete": False, "already_complete": False}
+    for split in data_lib.SPLITS:
+      report[split] = _SplitCollector(pool, writer, split, progress).run()
+    writer.finish()
+    report["complete"] = True
+    return report
+
+
+def _print_report(path: str, report: Mapping[str, Any]) -> None:
+  if report.get("already_complete"):
+    print(f"[collect] {path} already holds the complete dataset of this config; nothing to do.", flush=True)
+    return
+  for split in data_lib.SPLITS:
+    r = report[split]
+    tried = r["episodes"] + r["failures"]
+    rate = r["new_episodes"] / max(1e-9, r["seconds"])
+    print(f"[collect] {split}: {r['episodes']} episodes kept, {r['failures']} expert failures "
+          f"(success {100 * r['episodes'] / max(1, tried):.1f}% of {tried} seeds); this run: {r['new_episodes']} "
+          f"episodes, {r['frames']} frames in {r['seconds']:.0f}s ({3600 * rate:.0f} episodes/h)", flush=True)
+  print(f"[collect] dataset complete: {path}", flush=True)
+
+
+def run(config, workdir: str) -> None:
+  """The collect stage: the dataset of config.task at `roboshape.data.dataset_path(config, workdir)`."""
+  path = data_lib.dataset_path(config, workdir)
+  _check_workdir_task(config, workdir)
+  summary = config_summary(config)
+  state = check_compatible(path, summary)
+  if state is not None and state["complete"]:
+    _print_report(path, {"already_complete": True})
+    return
+  from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
+  spec = EnvSpec.from_config(config, level=LEVEL)
+  with SimPool(spec, num_workers=int(config.sim.num_workers)) as pool:
+    report = collect_dataset(pool, path, summary, split_targets(config))
+  _print_report(path, report)

@@ -1,0 +1,174 @@
+"""Reading the RoboShape dataset: whole episodes as numpy, and endless batches of video clips for training.
+
+  for ep in read_episodes(path, "train"):          # image uint8 [S,H,W,3], action float32 [S,7], seed, ...
+  for batch in clip_batches(path, "train", clip_length=6, batch_size=8, seed=0):
+    batch["video"]                                 # uint8 [B, L, H, W, 3]
+
+Both read through TFDS (`tfds.builder_from_directory`) and tf.data. `clip_batches` holds the split's frames in
+memory (about 16 KB per frame at 64x64: 0.25 GB for 200 episodes) and draws batch b from a random generator seeded
+by (seed, b), so the same seed gives the same batches and `start_batch=b` resumes exactly where batch b was.
+"""
+import json
+import os
+from typing import Any, Dict, Iterator, List, Optional, Sequence
+
+import numpy as np
+import tensorflow as tf
+import tensorflow_datasets as tfds
+
+from roboshape import data as data_lib
+from roboshape.cli import UserError
+
+_MAX_STEPS = 1 << 20
+
+
+def load_state(path: str) -> Dict[str, Any]:
+  """roboshape.json of the dataset at `path`; a missing dataset is a UserError that says how to make one."""
+  state_path = os.path.join(path, data_lib.STATE_FILE)
+  if not os.path.exists(os.path.join(path, "dataset_info.json")) or not os.path.exists(state_path):
+    raise UserError(f"no RoboShape dataset at {path}: run the collect stage first "
+                    "(python launch.py --config=configs/<task>_savi.py --config.stages=collect --workdir=...).")
+  with open(state_path) as f:
+    return json.load(f)
+
+
+def check_complete(path: str, state: Dict[str, Any]) -> None:
+  if not state.get("complete"):
+    counts = ", ".join(f"{k} {sum(len(s['seeds']) for s in v['shards'])}/{v['target']}"
+                       for k, v in state["splits"].items())
+    raise UserError(f"the dataset at {path} is incomplete ({counts} episodes): run the collect stage again "
+                    "with the same config to finish it.")
+
+
+def _flatten(example: Dict[str, Any]) -> Dict[str, tf.Tensor]:
+  """An RLDS episode (steps as a nested tf.data.Dataset) -> one dict of [S, ...] tensors."""
+  steps = example["steps"].batch(_MAX_STEPS).get_single_element()
+  meta = example["episode_metadata"]
+  return {
+      "image": steps["observation"]["image"],
+      "segmentation": steps["observation"]["segmentation"],
+      "action": steps["action"],
+      "reward": steps["reward"],
+      "discount": steps["discount"],
+      "is_first": steps["is_first"],
+      "is_last": steps["is_last"],
+      "is_terminal": steps["is_terminal"],
+      "seed": meta["seed"],
+      "success": meta["success"],
+      "task": meta["task"],
+      "level": meta["level"],
+      "env_version": meta["env_version"],
+  }
+
+
+def _to_python(episode: Dict[str, Any]) -> Dict[str, Any]:
+  for key in ("task", "level", "env_version"):
+    episode[key] = episode[key].decode()
+  episode["seed"] = int(episode["seed"])
+  episode["success"] = bool(episode["success"])
+  return episode
+
+
+def _iterate(ds: tf.data.Dataset) -> Iterator[Dict[str, Any]]:
+  ds = ds.map(_flatten, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True).prefetch(2)
+  for episode in tfds.as_numpy(ds):
+    yield _to_python(episode)
+
+
+def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iterator[Dict[str, Any]]:
+  """The episodes of a split in their stored order (seed order), as numpy.
+
+  Yields dicts with image uint8 [S,H,W,3], segmentation uint8 [S,H,W], action float32 [S,7], reward float32 [S],
+  discount float32 [S], is_first / is_last / is_terminal bool [S], seed int, success bool, task, level,
+  env_version str; S = T + 1 (the last step holds the final frame and a zero action).
+  allow_incomplete: read a dataset whose collection has not finished (tools); training refuses one.
+  """
+  state = load_state(path)
+  if not allow_incomplete:
+    check_complete(path, state)
+  if split not in state["splits"]:
+    raise UserError(f"unknown split {split!r}; the dataset at {path} has {', '.join(state['splits'])}.")
+  if not state["splits"][split]["shards"]:
+    return iter(())
+  builder = tfds.builder_from_directory(path)
+  return _iterate(builder.as_dataset(split=split, shuffle_files=False))
+
+
+class ShardReader:
+  """Reads single shard files (for validation, so a broken file is named): `read(file) -> Iterator[episode]`.
+
+  The decoder is traced once and shared by all shards; a truncated or corrupted file raises tf.errors.DataLossError
+  (or another tf.errors.OpError) while iterating.
+  """
+
+  def __init__(self, resolution: int):
+    from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
+    feats = rlds.features(resolution)
+    self._decode = tf.function(lambda record: _flatten(feats.deserialize_example(record)))
+
+  def read(self, file: str) -> Iterator[Dict[str, Any]]:
+    for record in tf.data.TFRecordDataset(file):
+      yield _to_python(tf.nest.map_structure(lambda t: t.numpy(), self._decode(record)))
+
+
+class _ClipTable:
+  """All frames of a split in memory plus the (episode, start) of every clip of `clip_length` frames."""
+
+  def __init__(self, episodes: Sequence[Dict[str, Any]], clip_length: int):
+    lengths = np.array([e["image"].shape[0] for e in episodes], np.int64)
+    self.images = np.concatenate([e["image"] for e in episodes])
+    self.segmentations = np.concatenate([e["segmentation"] for e in episodes])
+    self.seeds = np.array([e["seed"] for e in episodes], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    clips_per_episode = np.maximum(lengths - clip_length + 1, 0)
+    self.clip_episode = np.repeat(np.arange(len(episodes)), clips_per_episode)
+    self.clip_start = np.concatenate([np.arange(n) for n in clips_per_episode]).astype(np.int64)
+    self.offsets = offsets
+    self.clip_length = clip_length
+
+  def batch(self, seed: int, index: int, batch_size: int) -> List[np.ndarray]:
+    rng = np.random.default_rng([seed, index])
+    clips = rng.integers(0, len(self.clip_episode), size=batch_size)
+    episode, start = self.clip_episode[clips], self.clip_start[clips]
+    frames = self.offsets[episode][:, None] + start[:, None] + np.arange(self.clip_length)[None]
+    return [self.images[frames], self.segmentations[frames], self.seeds[episode], start]
+
+
+def clip_batches(path: str, split: str, clip_length: int, batch_size: int, seed: int = 0,
+                 start_batch: int = 0) -> Iterator[Dict[str, np.ndarray]]:
+  """Endless batches of random clips (uniform over all clips of `clip_length` consecutive frames).
+
+  Batch b depends only on (path, split, clip_length, batch_size, seed, b): `start_batch=b` resumes the sequence.
+  Yields video uint8 [B, L, H, W, 3], segmentation uint8 [B, L, H, W], episode_seed int64 [B], start int64 [B]
+  (the clip's first step within its episode).
+  """
+  if clip_length < 1 or batch_size < 1:
+    raise UserError(f"clip_length ({clip_length}) and batch_size ({batch_size}) must be >= 1.")
+  table = _ClipTable(list(read_episodes(path, split)), clip_length)
+  if not len(table.clip_episode):
+    raise UserError(f"no episode of split {split!r} in {path} has {clip_length} frames; lower the clip length.")
+  res = table.images.shape[1:3]
+
+  def make(index):
+    return table.batch(seed, int(index), batch_size)
+
+  def fetch(index):
+    video, segmentation, episode_seed, start = tf.numpy_function(
+        make, [index], [tf.uint8, tf.uint8, tf.int64, tf.int64], stateful=False)
+    video.set_shape((batch_size, clip_length, *res, 3))
+    segmentation.set_shape((batch_size, clip_length, *res))
+    episode_seed.set_shape((batch_size,))
+    start.set_shape((batch_size,))
+    return {"video": video, "segmentation": segmentation, "episode_seed": episode_seed, "start": start}
+
+  ds = tf.data.Dataset.range(start_batch, np.iinfo(np.int64).max)
+  ds = ds.map(fetch, num_parallel_calls=2, deterministic=True).prefetch(2)
+  return iter(tfds.as_numpy(ds))
+
+
+def dataset_summary(path: str) -> Optional[Dict[str, Any]]:
+  """The config a dataset was collected with (roboshape.json's "config"), or None when there is no dataset."""
+  try:
+    return load_state(path)["config"]
+  except UserError:
+    return None

@@ -1,0 +1,372 @@
+"""The RLDS layout of the RoboShape dataset and a writer that commits it shard by shard.
+
+A dataset is one TFDS directory (see `roboshape.data.dataset_path`) that plain TFDS reads:
+
+  tfds.builder_from_directory(path).as_dataset(split="train")     # splits "train" and "val"
+
+Each example is one episode (RLDS): `steps` with S = T + 1 steps and `episode_metadata`.
+  steps/observation/image         uint8 [H, W, 3]  the camera frame before the step's action (PNG in the shards)
+  steps/observation/segmentation  uint8 [H, W]     simulator object ids (0 floor, 1 table, 2 robot, 3 red cube,
+                                                   4 target/bin, 5+i distractor i)
+  steps/action                    float32 [7]      the action the env executed; zeros on the last step
+  steps/reward                    float32          reward of the step's action; 0 on the last step
+  steps/discount                  float32          1
+  steps/is_first, is_last         bool             first / last step of the episode
+  steps/is_terminal               bool             last step of an episode that ended by success
+  episode_metadata                task, level, seed, success, env_version
+
+Writing: `DatasetWriter` writes each shard to a temporary file and renames it into place, then records it (seeds,
+step count, size, sha256) in roboshape.json and rewrites the TFDS metadata (dataset_info.json, features.json), each
+file replaced atomically. So at any moment the directory is a readable dataset of the shards committed so far,
+roboshape.json says whether it is complete, and a killed writer loses at most the shard it was writing.
+`write_dataset` writes whole splits at once (tests, tools) without any simulator.
+"""
+import copy
+import errno
+import hashlib
+import json
+import os
+import shutil
+from typing import Any, Dict, List, Mapping, Optional, Sequence
+
+import numpy as np
+import tensorflow as tf
+import tensorflow_datasets as tfds
+from tensorflow_datasets.core import example_serializer
+
+from roboshape import data as data_lib
+from roboshape.cli import UserError
+
+LAYOUT = "roboshape-rlds-1"
+FILENAME_TEMPLATE = "{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_INDEX}"
+ACTION_DIM = 7
+DESCRIPTION = (
+    "RoboShape expert demonstrations (Franka Panda, ManiSkill3) in the RLDS layout: one example per episode with "
+    "`steps` (observation/image uint8 HxWx3, observation/segmentation uint8 HxW object ids, action float32[7] as "
+    "executed, reward, discount, is_first, is_last, is_terminal) and `episode_metadata` (task, level, seed, success, "
+    "env_version). The last step of an episode holds the final observation and a zero action. Only successful "
+    "expert episodes are stored; metadata.json holds the collection config.")
+
+
+def features(resolution: int) -> tfds.features.FeaturesDict:
+  """The TFDS features of an episode at `resolution` x `resolution` pixels."""
+  scalar = tfds.features.Scalar
+  return tfds.features.FeaturesDict({
+      "steps": tfds.features.Dataset({
+          "observation": tfds.features.FeaturesDict({
+              "image": tfds.features.Image(shape=(resolution, resolution, 3), dtype=np.uint8,
+                                           encoding_format="png"),
+              "segmentation": tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint8,
+                                                   encoding=tfds.features.Encoding.ZLIB),
+          }),
+          "action": tfds.features.Tensor(shape=(ACTION_DIM,), dtype=np.float32),
+          "reward": scalar(dtype=np.float32),
+          "discount": scalar(dtype=np.float32),
+          "is_first": scalar(dtype=np.bool_),
+          "is_last": scalar(dtype=np.bool_),
+          "is_terminal": scalar(dtype=np.bool_),
+      }),
+      "episode_metadata": tfds.features.FeaturesDict({
+          "task": tfds.features.Text(),
+          "level": tfds.features.Text(),
+          "seed": scalar(dtype=np.int64),
+          "success": scalar(dtype=np.bool_),
+          "env_version": tfds.features.Text(),
+      }),
+  })
+
+
+def to_rlds(episode: Mapping[str, Any]) -> Dict[str, Any]:
+  """A simulator episode (image [T+1,H,W,3], segmentation [T+1,H,W], action [T,7], reward [T], ...) -> RLDS example.
+
+  The RLDS episode has S = T + 1 steps: step t holds observation t and action t; the last step holds the final
+  observation, a zero action and reward, and is_last (and is_terminal when the episode ended by success).
+  """
+  image = np.asarray(episode["image"], np.uint8)
+  segmentation = np.asarray(episode["segmentation"], np.uint8)
+  action = np.asarray(episode["action"], np.float32).reshape(-1, ACTION_DIM)
+  reward = np.asarray(episode["reward"], np.float32).reshape(-1)
+  num_steps = image.shape[0]
+  if segmentation.shape != image.shape[:3] or action.shape[0] != num_steps - 1 or reward.shape[0] != num_steps - 1:
+    raise ValueError(f"episode of seed {episode.get('seed')}: inconsistent shapes image {image.shape}, "
+                     f"segmentation {segmentation.shape}, action {action.shape}, reward {reward.shape}")
+  index = np.arange(num_steps)
+  is_last = index == num_steps - 1
+  return {
+      "steps": {
+          "observation": {"image": image, "segmentation": segmentation},
+          "action": np.concatenate([action, np.zeros((1, ACTION_DIM), np.float32)]),
+          "reward": np.concatenate([reward, np.zeros((1,), np.float32)]),
+          "discount": np.ones((num_steps,), np.float32),
+          "is_first": index == 0,
+          "is_last": is_last,
+          "is_terminal": is_last & bool(episode.get("terminated", episode["success"])),
+      },
+      "episode_metadata": {
+          "task": str(episode["task"]),
+          "level": str(episode["level"]),
+          "seed": int(episode["seed"]),
+          "success": bool(episode["success"]),
+          "env_version": str(episode["env_version"]),
+      },
+  }
+
+
+def episodes_per_shard(num_episodes: int) -> int:
+  """Shard size of a split of `num_episodes`: about 20 shards, at most 20 episodes each (a few MB at 64x64)."""
+  return max(1, min(20, num_episodes // 20))
+
+
+def shard_filename(task: str, split: str, index: int) -> str:
+  return f"{data_lib.dataset_name(task)}-{split}.tfrecord-{index:05d}"
+
+
+def file_sha256(path: str) -> str:
+  digest = hashlib.sha256()
+  with open(path, "rb") as f:
+    for block in iter(lambda: f.read(1 << 20), b""):
+      digest.update(block)
+  return digest.hexdigest()
+
+
+def _disk_full(e: BaseException) -> bool:
+  return (isinstance(e, OSError) and e.errno == errno.ENOSPC) or "No space left on device" in str(e)
+
+
+def _atomic_write_text(path: str, text: str) -> None:
+  tmp = f"{path}.tmp"
+  try:
+    with open(tmp, "w") as f:
+      f.write(text)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+  except BaseException:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+    raise
+
+
+def _write_records(path: str, records: Sequence[bytes]) -> None:
+  """Writes a TFRecord file; a full disk raises OSError(ENOSPC) whatever layer noticed it."""
+  try:
+    with tf.io.TFRecordWriter(path) as writer:
+      for record in records:
+        writer.write(record)
+    with open(path, "rb+") as f:
+      os.fsync(f.fileno())
+  except (tf.errors.OpError, OSError) as e:
+    if _disk_full(e):
+      raise OSError(errno.ENOSPC, f"No space left on device while writing {path}") from e
+    raise
+
+
+def load_state(path: str) -> Optional[Dict[str, Any]]:
+  """roboshape.json of the dataset at `path`, or None when there is none."""
+  state_path = os.path.join(path, data_lib.STATE_FILE)
+  if not os.path.exists(state_path):
+    return None
+  try:
+    with open(state_path) as f:
+      state = json.load(f)
+  except (OSError, ValueError) as e:
+    raise UserError(f"{state_path} is unreadable ({e}); the dataset's record is damaged: delete {path} and "
+                    "collect again.") from None
+  if state.get("layout") != LAYOUT:
+    raise UserError(f"{path} holds a dataset of layout {state.get('layout')!r}, this roboshape writes {LAYOUT!r}: "
+                    "collect it again into another directory.")
+  return state
+
+
+class DatasetWriter:
+  """Writes one RoboShape dataset shard by shard, resumable: what is committed stays, and is readable at once.
+
+  Usage:
+    writer = DatasetWriter(path, config_summary, {"train": 200, "val": 10}, seed_bases={"train": 0, "val": 10**6})
+    writer.add_shard("train", episodes, failed_seeds=[...], next_seed=...)   # repeatedly, in seed order
+    writer.finish()
+  """
+
+  def __init__(self, path: str, config_summary: Mapping[str, Any], targets: Mapping[str, int],
+               seed_bases: Optional[Mapping[str, int]] = None):
+    self.path = path
+    state = load_state(path)
+    if state is None:
+      seed_bases = seed_bases or {split: 0 for split in targets}
+      state = {
+          "layout": LAYOUT,
+          "name": data_lib.dataset_name(config_summary["task"]),
+          "config": dict(config_summary),
+          "env_version": None,
+          "complete": False,
+          "splits": {split: {"target": int(n), "seed_base": int(seed_bases[split]),
+                             "episodes_per_shard": episodes_per_shard(int(n)), "shards": []}
+                     for split, n in targets.items()},
+      }
+    elif state["complete"]:
+      raise UserError(f"{path} already holds a complete dataset; it is never rewritten. Delete it to collect again.")
+    self.state = state
+    self.resolution = int(state["config"]["resolution"])
+    self.features = features(self.resolution)
+    self._serializer = example_serializer.ExampleSerializer(self.features.get_serialized_info())
+    os.makedirs(path, exist_ok=True)
+    self._remove_stale_files()
+
+  @property
+  def task(self) -> str:
+    return self.state["config"]["task"]
+
+  def shards(self, split: str) -> List[Dict[str, Any]]:
+    return self.state["splits"][split]["shards"]
+
+  def num_episodes(self, split: str) -> int:
+    return sum(len(s["seeds"]) for s in self.shards(split))
+
+  def _remove_stale_files(self) -> None:
+    """Deletes temporary files and shards that a killed writer left but never recorded."""
+    recorded = {s["file"] for split in self.state["splits"].values() for s in split["shards"]}
+    prefix = data_lib.dataset_name(self.task) + "-"
+    for name in os.listdir(self.path):
+      stale_shard = name.startswith(prefix) and ".tfrecord-" in name and name not in recorded
+      if name.endswith(".tmp") or stale_shard:
+        os.remove(os.path.join(self.path, name))
+
+  def _serialize(self, episode: Mapping[str, Any]) -> bytes:
+    """The episode's tf.train.Example bytes, identical from run to run (deterministic map order)."""
+    example = self._serializer.get_tf_example(self.features.encode_example(to_rlds(episode)))
+    return example.SerializeToString(deterministic=True)
+
+  def add_shard(self, split: str, episodes: Sequence[Mapping[str, Any]], failed_seeds: Sequence[int] = (),
+                next_seed: Optional[int] = None) -> Dict[str, Any]:
+    """Commits one shard of successful `episodes` (simulator dicts), in order; returns its record.
+
+    failed_seeds: the seeds whose expert failed since the previous shard (recorded, not stored).
+    next_seed: the first seed not yet resolved after this shard (where a resumed collection starts).
+    Raises OSError(ENOSPC) on a full disk, leaving the dataset as it was before the call.
+    """
+    if not episodes:
+      raise ValueError("a shard needs at least one episode")
+    env_versions = {str(e["env_version"]) for e in episodes}
+    known = self.state["env_version"]
+    if len(env_versions) > 1 or (known is not None and env_versions != {known}):
+      raise UserError(f"the simulator's env version changed ({known or ''} vs {', '.join(sorted(env_versions))}) "
+                      f"while collecting {self.path}; delete it and collect again with one roboshape version.")
+    for e in episodes:
+      if e["task"] != self.task or e["image"].shape[1:] != (self.resolution, self.resolution, 3):
+        raise ValueError(f"episode of seed {e['seed']} ({e['task']}, {e['image'].shape}) does not belong in "
+                         f"a {self.task} dataset at resolution {self.resolution}")
+    index = len(self.shards(split))
+    name = shard_filename(self.task, split, index)
+    final = os.path.join(self.path, name)
+    tmp = final + ".tmp"
+    records = [self._serialize(e) for e in episodes]
+    try:
+      _write_records(tmp, records)
+      os.replace(tmp, final)
+    except BaseException:
+      if os.path.exists(tmp):
+        os.remove(tmp)
+      raise
+    record = {
+        "file": name,
+        "seeds": [int(e["seed"]) for e in episodes],
+        "failed_seeds": [int(s) for s in failed_seeds],
+        "next_seed": int(next_seed if next_seed is not None else max(int(e["seed"]) for e in episodes) + 1),
+        "num_steps": int(sum(e["image"].shape[0] for e in episodes)),
+        "num_bytes": os.path.getsize(final),
+        "sha256": file_sha256(final),
+    }
+    new_state = copy.deepcopy(self.state)
+    new_state["env_version"] = env_versions.pop()
+    new_state["splits"][split]["shards"].append(record)
+    try:
+      self._save(new_state)
+    except BaseException:
+      os.remove(final)  # not recorded: the dataset stays as it was (its metadata too, best effort)
+      try:
+        write_tfds_metadata(self.path, self.state, self.features)
+      except Exception:  # pylint: disable=broad-except
+        pass
+      raise
+    self.state = new_state
+    return record
+
+  def finish(self) -> None:
+    """Marks the dataset complete (after checking every split reached its target)."""
+    for split, info in self.state["splits"].items():
+      have = self.num_episodes(split)
+      if have != info["target"]:
+        raise ValueError(f"split {split} has {have} episodes, {info['target']} wanted")
+    new_state = copy.deepcopy(self.state)
+    new_state["complete"] = True
+    self._save(new_state)
+    self.state = new_state
+
+  def _save(self, state: Dict[str, Any]) -> None:
+    """Writes the TFDS metadata for `state`, then roboshape.json (each file replaced atomically)."""
+    write_tfds_metadata(self.path, state, self.features)
+    _atomic_write_text(os.path.join(self.path, data_lib.STATE_FILE), json.dumps(state, indent=1))
+
+
+def write_tfds_metadata(path: str, state: Mapping[str, Any], feats: tfds.features.FeaturesDict) -> None:
+  """dataset_info.json, features.json and metadata.json describing the shards recorded in `state`."""
+  name = state["name"]
+  identity = tfds.core.DatasetIdentity(name=name, version=tfds.core.Version(data_lib.VERSION),
+                                       data_dir=path, module_name="")
+  metadata = tfds.core.MetadataDict(config=dict(state["config"]), env_version=state["env_version"],
+                                    complete=bool(state["complete"]),
+                                    seeds={k: [s for shard in v["shards"] for s in shard["seeds"]]
+                                           for k, v in state["splits"].items()})
+  info = tfds.core.DatasetInfo(builder=identity, features=feats, description=DESCRIPTION, metadata=metadata)
+  info.set_file_format("tfrecord")
+  splits = []
+  for split, split_state in state["splits"].items():
+    if not split_state["shards"]:
+      continue
+    template = tfds.core.ShardedFileTemplate(data_dir=path, template=FILENAME_TEMPLATE, dataset_name=name,
+                                             split=split, filetype_suffix="tfrecord")
+    splits.append(tfds.core.SplitInfo(name=split, shard_lengths=[len(s["seeds"]) for s in split_state["shards"]],
+                                      num_bytes=sum(s["num_bytes"] for s in split_state["shards"]),
+                                      filename_template=template))
+  info.set_splits(tfds.core.SplitDict(splits))
+  staging = os.path.join(path, ".metadata.tmp")
+  shutil.rmtree(staging, ignore_errors=True)
+  os.makedirs(staging)
+  try:
+    info.write_to_directory(staging)
+    for filename in sorted(os.listdir(staging), key=lambda n: n == "dataset_info.json"):  # dataset_info last
+      os.replace(os.path.join(staging, filename), os.path.join(path, filename))
+  except (tf.errors.OpError, OSError) as e:
+    if _disk_full(e):
+      raise OSError(errno.ENOSPC, f"No space left on device while writing metadata in {path}") from e
+    raise
+  finally:
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+def write_dataset(path: str, splits: Mapping[str, Sequence[Mapping[str, Any]]],
+                  config_summary: Optional[Mapping[str, Any]] = None) -> str:
+  """Writes episodes (simulator dicts, see roboshape.sim) as a complete dataset at `path`, without a simulator.
+
+  Args:
+    path: the dataset directory (as `roboshape.data.dataset_path` gives); it must not hold a dataset yet.
+    splits: {"train": [episode, ...], "val": [...]}; each split's episodes are stored in the given order.
+    config_summary: what the dataset was made with (task, resolution, ...); task and resolution are taken from the
+      episodes when missing.
+  Returns:
+    `path`.
+  """
+  if load_state(path) is not None:
+    raise UserError(f"{path} already holds a dataset; it is never rewritten. Delete it first.")
+  first = next(e for episodes in splits.values() for e in episodes)
+  summary = dict(config_summary or {})
+  summary.setdefault("task", first["task"])
+  summary.setdefault("level", first["level"])
+  summary.setdefault("resolution", int(first["image"].shape[1]))
+  writer = DatasetWriter(path, summary, {k: len(v) for k, v in splits.items()})
+  for split, episodes in splits.items():
+    size = writer.state["splits"][split]["episodes_per_shard"]
+    for start in range(0, len(episodes), size):
+      writer.add_shard(split, episodes[start:start + size])
+  writer.finish()
+  return path

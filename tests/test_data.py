@@ -1,0 +1,358 @@
+"""roboshape.data: RLDS round trips, clip batches, the collect stage (resume, determinism, refusals), validate, browse.
+
+Most tests drive the collector with `FakePool` (synthetic episodes, scrambled completion order, scripted failures);
+`test_real_workers_*` collect a tiny 32x32 dataset with the real simulator workers.
+"""
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from configs import common
+from conftest import _synthetic_episode
+from roboshape.cli import UserError
+from roboshape.data import browse
+from roboshape.data import collect
+from roboshape.data import dataset_path
+from roboshape.data import reader
+from roboshape.data import rlds
+from roboshape.data import validate
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TESTS = os.path.dirname(os.path.abspath(__file__))
+
+
+class FakePool:
+  """Stands in for roboshape.sim.SimPool: synthetic episodes, returned out of seed order; seeds % 4 == 1 fail."""
+
+  def __init__(self, task="push", resolution=16, delay=0.0, failing=lambda s: s % 4 == 1):
+    self.task, self.resolution, self.delay, self.failing = task, resolution, delay, failing
+    self.requested = []
+
+  def collect(self, seeds):
+    seeds = list(seeds)
+    self.requested += seeds
+    order = seeds[1::2] + seeds[0::2]  # completion order differs from seed order
+    for seed in order:
+      time.sleep(self.delay)
+      yield _synthetic_episode(seed, self.task, self.resolution, success=not self.failing(seed))
+
+
+def _config(task="push", train=6, resolution=16, **overrides):
+  config = common.get_config(task, "savi", "tiny")
+  config.data.train_episodes = train
+  config.env.resolution = resolution
+  for key, value in overrides.items():
+    section, field = key.split("__")
+    config[section][field] = value
+  return config
+
+
+def _collect(config, path, pool=None):
+  pool = pool or FakePool(config.task, config.env.resolution)
+  return collect.collect_dataset(pool, path, collect.config_summary(config), collect.split_targets(config),
+                                 progress=False)
+
+
+def _state(path):
+  with open(os.path.join(path, "roboshape.json")) as f:
+    return json.load(f)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+  """A dataset collected in one go with FakePool: the config, its path and roboshape.json."""
+  config = _config(train=6)
+  path = str(tmp_path_factory.mktemp("reference") / "roboshape_push" / "1.0.0")
+  _collect(config, path)
+  return config, path, _state(path)
+
+
+def test_round_trip_of_synthetic_episodes(synthetic_dataset):
+  episodes = list(reader.read_episodes(synthetic_dataset, "train"))
+  assert [e["seed"] for e in episodes] == [0, 1, 2, 3]
+  for e in episodes:
+    src = _synthetic_episode(e["seed"])
+    num_steps = src["image"].shape[0]
+    np.testing.assert_array_equal(e["image"], src["image"])
+    np.testing.assert_array_equal(e["segmentation"], src["segmentation"])
+    np.testing.assert_array_equal(e["action"][:-1], src["action"])
+    np.testing.assert_array_equal(e["action"][-1], np.zeros(7, np.float32))
+    np.testing.assert_array_equal(e["reward"][:-1], src["reward"])
+    assert e["image"].dtype == np.uint8 and e["action"].dtype == np.float32
+    assert e["is_last"].tolist() == [False] * (num_steps - 1) + [True]
+    assert e["is_first"].tolist() == [True] + [False] * (num_steps - 1)
+    assert e["is_terminal"][-1] and not e["is_terminal"][:-1].any()
+    assert e["success"] and e["task"] == "push" and e["env_version"] == "synthetic-1"
+  assert [e["seed"] for e in reader.read_episodes(synthetic_dataset, "val")] == [1_000_000, 1_000_001]
+
+
+def test_clip_batches_are_deterministic_resumable_and_match_the_episodes(synthetic_dataset):
+  batches = reader.clip_batches(synthetic_dataset, "train", clip_length=3, batch_size=5, seed=7)
+  first = [next(batches) for _ in range(4)]
+  again = reader.clip_batches(synthetic_dataset, "train", clip_length=3, batch_size=5, seed=7, start_batch=2)
+  for want, got in zip(first[2:], [next(again), next(again)]):
+    for key in ("video", "segmentation", "episode_seed", "start"):
+      np.testing.assert_array_equal(want[key], got[key])
+  other = next(reader.clip_batches(synthetic_dataset, "train", clip_length=3, batch_size=5, seed=8))
+  assert not np.array_equal(other["video"], first[0]["video"])
+  b = first[1]
+  assert b["video"].shape == (5, 3, 16, 16, 3) and b["video"].dtype == np.uint8
+  assert b["segmentation"].shape == (5, 3, 16, 16)
+  for i in range(5):
+    src = _synthetic_episode(int(b["episode_seed"][i]))
+    s = int(b["start"][i])
+    np.testing.assert_array_equal(b["video"][i], src["image"][s:s + 3])
+    np.testing.assert_array_equal(b["segmentation"][i], src["segmentation"][s:s + 3])
+
+
+def test_collect_keeps_the_first_successes_in_seed_order(reference):
+  config, path, state = reference
+  train = state["splits"]["train"]
+  seeds = [s for shard in train["shards"] for s in shard["seeds"]]
+  failed = [s for shard in train["shards"] for s in shard["failed_seeds"]]
+  assert seeds == [0, 2, 3, 4, 6, 7] and failed == [1, 5]        # seeds % 4 == 1 fail and are replaced
+  val = [s for shard in state["splits"]["val"]["shards"] for s in shard["seeds"]]
+  assert val == [1_000_000] and collect.split_targets(config) == {"train": 6, "val": 1}
+  assert state["complete"] and state["config"]["resolution"] == 16
+  assert [e["seed"] for e in reader.read_episodes(path, "train")] == seeds
+
+
+def test_same_config_gives_the_same_dataset_whatever_the_completion_order(reference, tmp_path):
+  config, _, state = reference
+  path = str(tmp_path / "roboshape_push" / "1.0.0")
+
+  class ReversedPool(FakePool):
+    def collect(self, seeds):
+      for seed in reversed(list(seeds)):
+        yield _synthetic_episode(seed, "push", 16, success=seed % 4 != 1)
+
+  _collect(config, path, ReversedPool())
+  def digests(st):
+    return [s["sha256"] for split in st["splits"].values() for s in split["shards"]]
+
+  assert digests(_state(path)) == digests(state)
+
+
+def test_resume_after_sigkill_loses_and_duplicates_nothing(reference, tmp_path):
+  config, _, ref_state = reference
+  path = str(tmp_path / "roboshape_push" / "1.0.0")
+  script = textwrap.dedent(f"""
+      import sys; sys.path[:0] = [{ROOT!r}, {TESTS!r}]
+      import test_data
+      test_data._collect(test_data._config(train=6), {path!r}, test_data.FakePool(delay=0.2))
+  """)
+  state_file = os.path.join(path, "roboshape.json")
+  proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.DEVNULL)
+  deadline = time.time() + 60
+  while time.time() < deadline and not (
+      os.path.exists(state_file) and len(_state(path)["splits"]["train"]["shards"]) >= 2):
+    time.sleep(0.02)
+  time.sleep(0.13)  # somewhere inside the next episode or shard write
+  os.kill(proc.pid, signal.SIGKILL)
+  proc.wait()
+  state = _state(path)
+  killed_at = len(state["splits"]["train"]["shards"])
+  assert 2 <= killed_at < 6 and not state["complete"]
+  # What a kill between a shard's write and its record leaves behind: a temp file and an unrecorded shard.
+  for name in (f"roboshape_push-train.tfrecord-{killed_at:05d}", f"roboshape_push-train.tfrecord-{killed_at:05d}.tmp"):
+    with open(os.path.join(path, name), "wb") as f:
+      f.write(b"garbage")
+  pool = FakePool()
+  _collect(config, path, pool)  # the same command again
+  assert pool.requested[0] == state["splits"]["train"]["shards"][-1]["next_seed"]  # resumes after the last shard
+  state = _state(path)
+  assert state["complete"]
+  for split in ("train", "val"):
+    got = [(s["seeds"], s["failed_seeds"], s["sha256"]) for s in state["splits"][split]["shards"]]
+    want = [(s["seeds"], s["failed_seeds"], s["sha256"]) for s in ref_state["splits"][split]["shards"]]
+    assert got == want
+  assert sorted(f for f in os.listdir(path) if ".tfrecord-" in f) == sorted(
+      s["file"] for split in state["splits"].values() for s in split["shards"])
+  assert [e["seed"] for e in reader.read_episodes(path, "train")] == [0, 2, 3, 4, 6, 7]
+
+
+def test_disk_full_stops_with_a_clear_error_and_keeps_what_was_written(reference, tmp_path, monkeypatch):
+  config, _, ref_state = reference
+  path = str(tmp_path / "roboshape_push" / "1.0.0")
+  real_write = rlds._write_records  # pylint: disable=protected-access
+  calls = []
+
+  def write_until_full(file, records):
+    calls.append(file)
+    if len(calls) == 3:
+      with open(file, "wb") as f:
+        f.write(b"partial")
+      raise OSError(errno.ENOSPC, "No space left on device")
+    real_write(file, records)
+
+  monkeypatch.setattr(rlds, "_write_records", write_until_full)
+  with pytest.raises(UserError, match="disk full.*2 train.*kept and readable"):
+    _collect(config, path)
+  assert not any(f.endswith(".tmp") for f in os.listdir(path))
+  assert [e["seed"] for e in reader.read_episodes(path, "train", allow_incomplete=True)] == [0, 2]
+  with pytest.raises(UserError, match="incomplete.*train 2/6"):
+    reader.read_episodes(path, "train")
+  monkeypatch.setattr(rlds, "_write_records", real_write)
+  _collect(config, path)
+  assert [s["sha256"] for s in _state(path)["splits"]["train"]["shards"]] == [
+      s["sha256"] for s in ref_state["splits"]["train"]["shards"]]
+
+
+def test_a_dataset_of_another_config_is_refused(reference, tmp_path):
+  config, path, _ = reference
+  workdir = str(tmp_path / "run")
+  ref_root = os.path.dirname(os.path.dirname(path))
+  shutil.copytree(ref_root, os.path.join(workdir, "data"))
+  assert dataset_path(config, workdir) == os.path.join(workdir, "data", "roboshape_push", "1.0.0")
+  other_res = _config(train=6, resolution=32)
+  with pytest.raises(UserError, match=r"another config \(resolution: 16 in the dataset, 32 in the config\)"):
+    collect.run(other_res, workdir)
+  more_distractors = _config(train=6, env__max_distractors=6)
+  with pytest.raises(UserError, match="max_distractors: 4 in the dataset, 6 in the config"):
+    collect.run(more_distractors, workdir)
+  with pytest.raises(UserError, match="task: 'push' in the dataset, 'pick' in the config"):
+    collect.run(_config("pick", train=6), workdir)
+  before = {f: os.path.getmtime(os.path.join(path, f)) for f in os.listdir(path)}
+  assert _collect(config, path)["already_complete"]  # the same config: a complete dataset is left alone
+  assert before == {f: os.path.getmtime(os.path.join(path, f)) for f in os.listdir(path)}
+
+
+def test_validate_passes_a_good_dataset_and_names_corrupted_and_truncated_shards(reference, tmp_path, capsys):
+  _, path, state = reference
+  assert validate.main([path]) == 0
+  assert "OK" in capsys.readouterr().out
+  broken = str(tmp_path / "broken")
+  shutil.copytree(path, broken)
+  shards = state["splits"]["train"]["shards"]
+  with open(os.path.join(broken, shards[1]["file"]), "r+b") as f:  # flip bytes inside a record
+    f.seek(shards[1]["num_bytes"] // 2)
+    f.write(b"\x00\xff\x00\xff")
+  with open(os.path.join(broken, shards[3]["file"]), "r+b") as f:
+    f.truncate(shards[3]["num_bytes"] - 100)
+  assert validate.main([broken]) == 1
+  err = capsys.readouterr().err
+  assert f"shard {shards[1]['file']} is corrupted" in err
+  assert f"shard {shards[3]['file']} is truncated" in err
+  assert "cannot be decoded" in err
+
+
+def test_validate_names_bad_episodes(tmp_path, capsys):
+  bad_action = _synthetic_episode(0)
+  bad_action["action"][2, 1] = 1.5
+  blank = _synthetic_episode(1)
+  blank["image"][4] = 0
+  path = rlds.write_dataset(str(tmp_path / "d"), {"train": [bad_action, blank], "val": [_synthetic_episode(1)]})
+  assert validate.main([path]) == 1
+  err = capsys.readouterr().err
+  assert "actions outside [-1, 1]" in err and "blank (constant) frame(s) at steps [4]" in err
+  assert "seed 1 appears twice" in err
+
+
+def test_browse_writes_an_animation_and_a_strip(synthetic_dataset, tmp_path):
+  import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
+  out = str(tmp_path / "ep.gif")
+  assert browse.main([synthetic_dataset, "--split", "val", "--episode", "1", "--out", out, "--scale", "2"]) == 0
+  gif = imageio.mimread(out)
+  src = _synthetic_episode(1_000_001)
+  assert len(gif) == src["image"].shape[0] and gif[0].shape[:2] == (32, 66)
+  np.testing.assert_array_equal(np.asarray(gif[0])[::2, :32:2, :3], src["image"][0])
+  strip = imageio.imread(str(tmp_path / "ep_strip.png"))
+  assert strip.shape[0] == 32 and strip.shape[1] > 66
+  assert browse.main([synthetic_dataset, "--episode", "9", "--out", out]) == 2
+
+
+# ----------------------------------------------------------------------------------------- real simulator workers
+@pytest.fixture(scope="module")
+def sim_pool():
+  """One real simulator worker (push, 32x32), shared by the tests below."""
+  from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
+  with SimPool(EnvSpec("push", resolution=32), num_workers=1) as pool:
+    yield pool
+
+
+@pytest.fixture(scope="module")
+def real_dataset(sim_pool, tmp_path_factory):
+  """The collect stage (`collect.run`) on the real worker: 2 train + 1 val episodes at 32x32; its dataset path."""
+  import roboshape.sim  # pylint: disable=import-outside-toplevel
+  config = _config("push", train=2, resolution=32)
+  workdir = str(tmp_path_factory.mktemp("real_run"))
+  specs = []
+
+  def borrowed_pool(spec, num_workers):  # the stage's SimPool is the shared one (one simulator start-up)
+    specs.append((spec, num_workers))
+    return _Borrowed(sim_pool)
+
+  with pytest.MonkeyPatch.context() as mp:
+    mp.setattr(roboshape.sim, "SimPool", borrowed_pool)
+    collect.run(config, workdir)
+  assert specs == [(sim_pool.spec, 0)]
+  return dataset_path(config, workdir)
+
+
+class _Borrowed:
+  def __init__(self, pool):
+    self.pool = pool
+
+  def __enter__(self):
+    return self.pool
+
+  def __exit__(self, *exc):
+    pass
+
+
+def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
+  script = textwrap.dedent(f"""
+      import json, sys
+      import tensorflow_datasets as tfds
+      builder = tfds.builder_from_directory({real_dataset!r})
+      out = {{}}
+      for split in ("train", "val"):
+        for ep in builder.as_dataset(split=split):
+          steps = list(ep["steps"])
+          meta = ep["episode_metadata"]
+          out.setdefault(split, []).append(dict(
+              seed=int(meta["seed"]), success=bool(meta["success"]), task=meta["task"].numpy().decode(),
+              env_version=meta["env_version"].numpy().decode(), steps=len(steps),
+              image=[steps[0]["observation"]["image"].dtype.name,
+                     steps[0]["observation"]["image"].shape.as_list()],
+              seg=steps[0]["observation"]["segmentation"].shape.as_list(),
+              first=[bool(s["is_first"]) for s in steps].index(True), last=bool(steps[-1]["is_last"]),
+              amax=max(float(abs(s["action"].numpy()).max()) for s in steps)))
+      assert not any(m.startswith("roboshape") for m in sys.modules)
+      print(json.dumps(out))
+  """)
+  out = subprocess.run([sys.executable, "-c", script], cwd="/", capture_output=True, text=True, timeout=120,
+                       check=False, env={**os.environ, "PYTHONPATH": ""})
+  assert out.returncode == 0, out.stderr[-2000:]
+  got = json.loads(out.stdout.strip().splitlines()[-1])
+  state = _state(real_dataset)
+  for split in ("train", "val"):
+    seeds = [s for shard in state["splits"][split]["shards"] for s in shard["seeds"]]
+    assert [e["seed"] for e in got[split]] == seeds
+    assert sum(e["steps"] for e in got[split]) == sum(s["num_steps"] for s in state["splits"][split]["shards"])
+  assert len(got["train"]) == 2 and len(got["val"]) == 1 and got["val"][0]["seed"] >= 1_000_000
+  for e in got["train"] + got["val"]:
+    assert e["success"] and e["task"] == "push" and e["env_version"].startswith("roboshape-envs")
+    assert e["image"] == ["uint8", [32, 32, 3]] and e["seg"] == [32, 32]
+    assert e["first"] == 0 and e["last"] and 0 < e["amax"] <= 1
+  assert validate.main([real_dataset]) == 0
+
+
+def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_pool):
+  stored = next(reader.read_episodes(real_dataset, "train"))
+  (again,) = list(sim_pool.collect([stored["seed"]]))
+  np.testing.assert_array_equal(stored["image"], again["image"])
+  np.testing.assert_array_equal(stored["segmentation"], again["segmentation"])
+  np.testing.assert_array_equal(stored["action"][:-1], again["action"])
+  np.testing.assert_array_equal(stored["reward"][:-1], again["reward"])
+  assert set(np.unique(stored["segmentation"])) >= {1, 2, 3}  # table, robot and cube are in view
