@@ -1,0 +1,90 @@
+"""SAVi train-step throughput, and how much of the machine's dense-matmul speed the step reaches.
+
+  JAX_PLATFORMS=cpu .venv/bin/python benchmarks/savi_speed.py [--variant=paper|small|tiny] [--steps=3]
+
+Times the jitted pretrain step (forward, backward, Adam) at batch 8 x 6 frames of 64x64 with the variant's SAVi
+(paper = SAVi-S), prints frames/s, the step's FLOPs from XLA's cost analysis of the compiled step, and the ratio
+of the step's FLOP/s to the FLOP/s of a large float32 matmul measured in the same run.
+"""
+import argparse
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from configs import common  # pylint: disable=wrong-import-position
+from roboshape.train import pretrain  # pylint: disable=wrong-import-position
+
+
+def _flops(compiled) -> float:
+  cost = compiled.cost_analysis()
+  if isinstance(cost, (list, tuple)):
+    cost = cost[0]
+  return float(cost["flops"])
+
+
+def matmul_flops_per_s(n: int = 2048, reps: int = 10) -> float:
+  """Dense float32 [n, n] x [n, n] FLOP/s, best of `reps`."""
+  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
+  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+  matmul = jax.jit(jnp.dot)
+  matmul(a, b).block_until_ready()
+  best = float("inf")
+  for _ in range(reps):
+    start = time.perf_counter()
+    matmul(a, b).block_until_ready()
+    best = min(best, time.perf_counter() - start)
+  return 2.0 * n ** 3 / best
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--variant", default="paper", choices=common.VARIANTS)
+  parser.add_argument("--steps", type=int, default=3, help="timed steps after one warm-up step")
+  parser.add_argument("--batch", type=int, default=8)
+  parser.add_argument("--frames", type=int, default=6)
+  args = parser.parse_args()
+
+  config = common.get_config("pick", "savi", args.variant)
+  config.env.resolution = 64
+  config.savi.train.batch_size = args.batch
+  config.savi.train.clip_length = args.frames
+  pretrain.validate_config(config)
+  comp = pretrain.compiled(config)
+  shape = (args.batch, args.frames, 64, 64, 3)
+  state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.replicated)
+  video = jax.device_put(np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8), comp.batch_sharding)
+  key = jax.random.key(1)
+
+  start = time.perf_counter()
+  compiled = comp.train_step.lower(state, video, key).compile()
+  compile_s = time.perf_counter() - start
+  step_flops = _flops(compiled)
+
+  state, metrics = compiled(state, video, key)
+  jax.block_until_ready(metrics)
+  times = []
+  for _ in range(args.steps):
+    start = time.perf_counter()
+    state, metrics = compiled(state, video, key)
+    jax.block_until_ready(metrics)
+    times.append(time.perf_counter() - start)
+  step_s = float(np.median(times))
+  matmul = matmul_flops_per_s()
+
+  frames = args.batch * args.frames
+  print(f"device: {jax.devices()[0].device_kind} x{jax.device_count()}, variant {args.variant}, "
+        f"batch {args.batch} x {args.frames} frames, 64x64, K={config.savi.num_slots}, D={config.savi.slot_size}")
+  print(f"compile: {compile_s:.1f} s; step times (s): {', '.join(f'{t:.3f}' for t in times)}")
+  print(f"train step: {step_s:.3f} s median -> {frames / step_s:.1f} frames/s")
+  print(f"step FLOPs (XLA cost analysis): {step_flops / 1e9:.1f} GFLOP -> {step_flops / step_s / 1e9:.1f} GFLOP/s")
+  print(f"dense matmul 2048^3 float32: {matmul / 1e9:.1f} GFLOP/s")
+  print(f"ratio step FLOP/s / matmul FLOP/s: {step_flops / step_s / matmul:.3f}")
+
+
+if __name__ == "__main__":
+  main()

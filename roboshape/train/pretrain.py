@@ -1,0 +1,293 @@
+"""The "pretrain" stage: SAVi trained by video reconstruction on the task's demos, then served as a frozen encoder.
+
+  python launch.py --config=configs/pick_savi.py:small --config.stages='("pretrain",)' --workdir=runs/pick_savi
+  enc = roboshape.load_encoder("runs/pick_savi")      # -> load_encoder below, a FrozenEncoder over K slots of size D
+
+Training: clips of `config.savi.train.clip_length` frames from the dataset's train split, MSE reconstruction, Adam
+with linear warmup, cosine decay and global-norm clipping. The jitted train step shards the batch over the devices
+of a 1-D mesh ("data") and keeps parameters replicated. Writes under <workdir>/savi/: checkpoints/ (orbax; resumed
+after a kill at the same step, with the same data order since batch i of the dataset's deterministic order always
+feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and val FG-ARI / mIoU of the slot masks,
+see roboshape/eval/decomposition.py), figures/ (input, reconstruction and every slot per eval, as PNG).
+A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint stays.
+"""
+import functools
+import itertools
+import json
+import math
+import os
+from typing import Any, Callable, Dict, Iterator, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from roboshape.cli import UserError
+from roboshape.eval import decomposition
+from roboshape.models import savi
+from roboshape.models.encoder import FrozenEncoder
+from roboshape.train.checkpoint import Checkpointer
+
+INIT_SLOTS_SEED = 0  # the fixed key of the frozen encoder's first-frame slots
+
+
+def savi_dir(workdir: str) -> str:
+  return os.path.join(workdir, "savi")
+
+
+def validate_config(config) -> None:
+  """Raises UserError when the SAVi section cannot work with the env's resolution or the machine's devices."""
+  c = config.savi
+  if len(c.encoder.features) != len(c.encoder.strides):
+    raise UserError(f"savi.encoder.features ({len(c.encoder.features)} layers) and savi.encoder.strides "
+                    f"({len(c.encoder.strides)}) must have the same length.")
+  if len(c.decoder.features) != len(c.decoder.strides):
+    raise UserError(f"savi.decoder.features ({len(c.decoder.features)} layers) and savi.decoder.strides "
+                    f"({len(c.decoder.strides)}) must have the same length.")
+  out = savi.decoder_grid_size(c, config.env.resolution) * math.prod(c.decoder.strides)
+  if out != config.env.resolution:
+    raise UserError(f"the SAVi decoder outputs {out}x{out} images (savi.decoder.grid_size * prod(strides)) but "
+                    f"env.resolution is {config.env.resolution}; set --config.savi.decoder.grid_size=0 (automatic) "
+                    f"or change savi.decoder.strides.")
+  devices = jax.local_device_count()
+  if c.train.batch_size % devices:
+    raise UserError(f"savi.train.batch_size={c.train.batch_size} does not split over {devices} devices; "
+                    f"use a multiple of {devices}.")
+
+
+def make_optimizer(train_config) -> optax.GradientTransformation:
+  """Adam on a warmup + cosine-decay schedule, after clipping the gradients' global norm."""
+  return optax.chain(optax.clip_by_global_norm(train_config.clip_norm), optax.adam(_schedule(train_config)))
+
+
+def _schedule(train_config) -> optax.Schedule:
+  steps = int(train_config.steps)
+  warmup = min(int(train_config.warmup_steps), max(steps - 1, 0))
+  return optax.warmup_cosine_decay_schedule(0.0, train_config.learning_rate, warmup, max(steps, warmup + 1), 0.0)
+
+
+def _to_float(video: jax.Array) -> jax.Array:
+  return video.astype(jnp.float32) / 255.0
+
+
+class _Compiled:
+  """The model, optimizer and jitted functions of one SAVi config, built once per process and config."""
+
+  def __init__(self, savi_json: str, resolution: int):
+    c = _config_from_json(savi_json)
+    self.model = savi.build_model(c, resolution)
+    self.optimizer = make_optimizer(c.train)
+    self.schedule = _schedule(c.train)
+    self.mesh = Mesh(np.array(jax.devices()), ("data",))
+    self.replicated = NamedSharding(self.mesh, PartitionSpec())
+    self.batch_sharding = NamedSharding(self.mesh, PartitionSpec("data"))
+    self.train_step = jax.jit(self._train_step, in_shardings=(self.replicated, self.batch_sharding, self.replicated),
+                              out_shardings=(self.replicated, self.replicated))
+    self.eval_video = jax.jit(self._eval_video)
+
+  def init_state(self, key: jax.Array, video_shape: Sequence[int]) -> Dict[str, Any]:
+    """The step-0 train state {step, params, opt_state} for clips of shape [B, L, H, W, 3]."""
+    params_key, slots_key = jax.random.split(key)
+    dummy = jnp.zeros((1, *video_shape[1:]), jnp.float32)
+    params = self.model.init({"params": params_key, "slots": slots_key}, dummy)["params"]
+    return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
+
+  def _train_step(self, state, video, key):
+    """(state, video uint8 [B, L, H, W, 3], key) -> (state, metrics)."""
+    step_key = jax.random.fold_in(key, state["step"])
+
+    def loss_fn(params):
+      target = _to_float(video)
+      out = self.model.apply({"params": params}, target, rngs={"slots": step_key})
+      mse = jnp.mean(jnp.square(out["recon"] - target))
+      return mse, mse
+
+    (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+    updates, opt_state = self.optimizer.update(grads, state["opt_state"], state["params"])
+    params = optax.apply_updates(state["params"], updates)
+    metrics = {"loss": loss, "recon_mse": mse, "grad_norm": optax.tree.norm(grads),
+               "lr": self.schedule(state["step"])}
+    return {"step": state["step"] + 1, "params": params, "opt_state": opt_state}, metrics
+
+  def initial_slots(self, params, batch_size: int) -> jax.Array:
+    """The frozen encoder's deterministic first-frame slots [B, K, D] (the same for every episode)."""
+    noise = jax.random.normal(jax.random.key(INIT_SLOTS_SEED), (self.model.num_slots, self.model.slot_size))
+    slots = self.model.apply({"params": params}, noise, method=savi.SAVi.initial_slots)
+    return jnp.broadcast_to(slots, (batch_size, *slots.shape))
+
+  def _eval_video(self, params, video):
+    """video uint8 [B, T, H, W, 3] -> the model's outputs from the deterministic first-frame slots."""
+    init = self.initial_slots(params, video.shape[0])
+    return self.model.apply({"params": params}, _to_float(video), init_slots=init)
+
+
+def _config_from_json(text: str):
+  import ml_collections  # pylint: disable=import-outside-toplevel
+  return ml_collections.ConfigDict(json.loads(text))
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled_for(savi_json: str, resolution: int) -> _Compiled:
+  return _Compiled(savi_json, resolution)
+
+
+def compiled(config) -> _Compiled:
+  """The (cached) model and jitted functions for `config.savi` at `config.env.resolution`."""
+  return _compiled_for(config.savi.to_json(sort_keys=True), int(config.env.resolution))
+
+
+def evaluate(comp: _Compiled, params, episodes: Sequence[Dict[str, np.ndarray]], eval_config,
+             figure_path: Optional[str] = None, title: str = "") -> Dict[str, float]:
+  """FG-ARI and matched mIoU of the slot masks on whole (first `eval_config.frames` frames of) episodes.
+
+  episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W]. Writes the decomposition figure
+  of the first episode to `figure_path` when given.
+  """
+  aris, ious, mses = [], [], []
+  for i, episode in enumerate(episodes):
+    video = episode["image"][:eval_config.frames]
+    out = jax.device_get(comp.eval_video(params, video[None]))
+    seg = episode["segmentation"][:eval_config.frames]
+    aris.append(decomposition.fg_ari(seg, out["masks"][0], eval_config.background_ids))
+    ious.append(decomposition.matched_miou(seg, out["masks"][0], eval_config.background_ids))
+    mses.append(float(np.mean((out["recon"][0] - video / 255.0) ** 2)))
+    if i == 0 and figure_path:
+      n = eval_config.figure_frames
+      decomposition.decomposition_figure(video[:n], out["recon"][0, :n], out["rgb"][0, :n], out["masks"][0, :n],
+                                         figure_path, title)
+  with np.errstate(all="ignore"):
+    return {"fg_ari": float(np.nanmean(aris)) if aris else float("nan"),
+            "miou": float(np.nanmean(ious)) if ious else float("nan"),
+            "recon_mse": float(np.mean(mses)) if mses else float("nan")}
+
+
+def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str, np.ndarray]]],
+          val_episodes: Sequence[Dict[str, np.ndarray]] = ()) -> Dict[str, Any]:
+  """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <workdir>/savi/checkpoints.
+
+  batches_from(start_batch) yields the batches from index start_batch on (dicts with video uint8 [B, L, H, W, 3]
+  and episode_seed int [B]). Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
+  """
+  # pylint: disable=import-outside-toplevel
+  from tensorboardX import SummaryWriter
+  from tqdm import tqdm
+
+  validate_config(config)
+  tc, ec = config.savi.train, config.savi.eval
+  comp = compiled(config)
+  root = savi_dir(workdir)
+  figures = os.path.join(root, "figures")
+  history, evals = [], []
+  with Checkpointer(os.path.join(root, "checkpoints"), keep=tc.keep_checkpoints) as ckpt:
+    start = ckpt.latest_step() or 0
+    if start >= tc.steps:
+      print(f"[pretrain] already trained to step {start} >= savi.train.steps={tc.steps}; skipping.", flush=True)
+      like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
+      return {"step": start, "params": ckpt.restore(_with_sharding(like, comp.replicated))["params"],
+              "history": history, "eval": evals}
+    key = jax.random.key(config.seed)
+    state = jax.device_put(comp.init_state(jax.random.fold_in(key, 1), _clip_shape(config)), comp.replicated)
+    if start:
+      state = ckpt.restore(state)
+      print(f"[pretrain] resuming from step {start}", flush=True)
+    step_key = jax.random.fold_in(key, 2)
+    writer = SummaryWriter(os.path.join(root, "tb"))
+    batches = batches_from(start)
+    try:
+      for step in tqdm(range(start, tc.steps), initial=start, total=tc.steps, desc="pretrain SAVi", smoothing=0.1):
+        batch = next(batches)
+        if step == start and tuple(np.shape(batch["video"])) != _clip_shape(config):
+          raise UserError(f"the dataset's clips have shape {tuple(np.shape(batch['video']))}, the SAVi config expects "
+                          f"{_clip_shape(config)} [B, L, H, W, 3]: set --config.env.resolution to the dataset's.")
+        video = jax.make_array_from_process_local_data(comp.batch_sharding, np.asarray(batch["video"]))
+        new_state, metrics = comp.train_step(state, video, step_key)
+        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        if not np.isfinite(metrics["loss"]):
+          ckpt.wait()
+          raise UserError(
+              f"SAVi loss is {metrics['loss']} at step {step} (batch {step}, episode seeds "
+              f"{np.asarray(batch['episode_seed']).tolist()}); training stopped, the last good checkpoint "
+              f"(step {ckpt.latest_step()}) is kept in {ckpt.directory}. Lower --config.savi.train.learning_rate "
+              f"or --config.savi.train.clip_norm and run again.")
+        state, done = new_state, step + 1
+        history.append((done, metrics["loss"]))
+        if done % tc.log_every == 0 or done == tc.steps:
+          for name, value in metrics.items():
+            writer.add_scalar(f"train/{name}", value, done)
+        if done % tc.checkpoint_every == 0 or done == tc.steps:
+          ckpt.save(done, state)
+        if val_episodes and (done % ec.every == 0 or done == tc.steps):
+          result = evaluate(comp, state["params"], val_episodes[:ec.episodes], ec,
+                            os.path.join(figures, f"step_{done:07d}.png"), f"{config.name} step {done}")
+          for name, value in result.items():
+            writer.add_scalar(f"val/{name}", value, done)
+          evals.append((done, result))
+          tqdm.write(f"[pretrain] step {done}: val FG-ARI {result['fg_ari']:.3f} mIoU {result['miou']:.3f} "
+                     f"recon MSE {result['recon_mse']:.5f}")
+    finally:
+      writer.close()
+  return {"step": int(state["step"]), "params": state["params"], "history": history, "eval": evals}
+
+
+def _clip_shape(config):
+  r = config.env.resolution
+  return (config.savi.train.batch_size, config.savi.train.clip_length, r, r, 3)
+
+
+def _with_sharding(tree, sharding):
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), tree)
+
+
+def run(config, workdir: str) -> None:
+  """The pretrain stage: trains SAVi on the dataset of `config` (roboshape.data) to config.savi.train.steps."""
+  # pylint: disable=import-outside-toplevel
+  from roboshape import data as rdata
+  from roboshape.data import reader
+
+  path = rdata.dataset_path(config, workdir)
+  reader.load_state(path)  # a missing dataset is a UserError that says how to make one
+  tc = config.savi.train
+
+  def batches_from(start: int):
+    return reader.clip_batches(path, "train", tc.clip_length, tc.batch_size, seed=config.seed, start_batch=start)
+
+  val = list(itertools.islice(reader.read_episodes(path, "val"), config.savi.eval.episodes))
+  result = train(config, workdir, batches_from, val)
+  if result["eval"]:
+    step, metrics = result["eval"][-1]
+    print(f"[pretrain] step {step}: val FG-ARI {metrics['fg_ari']:.3f}, mIoU {metrics['miou']:.3f}", flush=True)
+
+
+def _frozen_step(model: savi.SAVi, params, state, frames):
+  """FrozenEncoder step: (params, predicted slots [B, K, D], frames uint8 [B, H, W, 3]) -> (slots, next state)."""
+  return model.apply({"params": params}, _to_float(frames), state, method=savi.SAVi.step)
+
+
+def load_encoder(workdir: str) -> FrozenEncoder:
+  """The SAVi encoder trained in `workdir` (its latest checkpoint), frozen: tokens are a frame's K slots [B, K, D].
+
+  The state is the predicted slots for the next frame; `init_state(B)` gives the learned-Gaussian slots drawn with
+  a fixed key, so encoding is deterministic and the same for every episode of a batch.
+  """
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  config = stages.load_config(workdir)
+  comp = compiled(config)
+  directory = os.path.join(savi_dir(workdir), "checkpoints")
+  ckpt = Checkpointer(directory)
+  try:
+    step = ckpt.latest_step()
+    if step is None:
+      raise UserError(f"no SAVi checkpoint in {directory}; run the pretrain stage first "
+                      f"(python launch.py --config=configs/{config.name}.py --workdir={workdir}).")
+    like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
+    params = ckpt.restore(_with_sharding(like, comp.replicated), step)["params"]
+  finally:
+    ckpt.close()
+  init = comp.initial_slots(params, 1)[0]
+  return FrozenEncoder(
+      name="savi", params=params, step=functools.partial(_frozen_step, comp.model),
+      init_state=lambda batch_size: jnp.broadcast_to(init, (batch_size, *init.shape)),
+      num_tokens=comp.model.num_slots, token_dim=comp.model.slot_size,
+      identity=f"savi:{os.path.abspath(directory)}@{step}")

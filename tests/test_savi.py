@@ -1,0 +1,239 @@
+"""SAVi (roboshape/models/savi.py, roboshape/train/pretrain.py) and the decomposition metrics, on synthetic clips of
+moving coloured squares whose segmentation ids are known: 16x16 frames, K = 3 slots of size 16."""
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from configs import common
+from roboshape import stages
+from roboshape.cli import UserError
+from roboshape.eval import decomposition
+from roboshape.models import savi
+from roboshape.train import pretrain
+
+STEPS = 30
+COLORS = np.array([[230, 40, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]], np.uint8)
+
+
+def synthetic_episode(seed: int, length: int = 6, size: int = 16, num_objects: int = 2, square: int = 5):
+  """Squares moving in straight lines over a grey backdrop (id 0) and a darker "table" (id 1); objects are 3, 4..."""
+  rng = np.random.default_rng(seed)
+  image = np.full((length, size, size, 3), 128, np.uint8)
+  seg = np.zeros((length, size, size), np.uint8)
+  image[:, size // 2:] = 90
+  seg[:, size // 2:] = 1
+  pos = rng.uniform(0, size - square, (num_objects, 2))
+  vel = rng.uniform(-1, 1, (num_objects, 2))
+  colors = rng.permutation(len(COLORS))[:num_objects]
+  for t in range(length):
+    for i in range(num_objects):
+      y, x = np.clip(pos[i] + t * vel[i], 0, size - square).astype(int)
+      image[t, y:y + square, x:x + square] = COLORS[colors[i]]
+      seg[t, y:y + square, x:x + square] = 3 + i
+  return {"image": image, "segmentation": seg, "seed": seed}
+
+
+def tiny_config():
+  config = common.get_config("push", "savi", "tiny")
+  config.env.resolution = 16
+  s = config.savi
+  s.num_slots, s.slot_size, s.slot_mlp_size = 3, 16, 32
+  s.encoder.features, s.encoder.strides, s.encoder.kernel_size = (8,) * 5, (1,) * 5, 3
+  s.encoder.mlp_size, s.encoder.output_size = 16, 16
+  s.predictor.num_heads, s.predictor.mlp_size = 2, 32
+  s.decoder.features, s.decoder.strides, s.decoder.kernel_size = (16, 16), (2, 1), 3
+  s.train.steps, s.train.batch_size, s.train.clip_length = STEPS, 1, 6
+  s.train.learning_rate, s.train.warmup_steps = 3e-3, 5
+  s.train.checkpoint_every, s.train.keep_checkpoints = 10, 2
+  s.eval.every, s.eval.episodes, s.eval.frames, s.eval.figure_frames = STEPS, 2, 6, 3
+  return config
+
+
+class Source:
+  """batches_from(start) for pretrain.train: one fixed clip, remembering the batch indices it served."""
+
+  def __init__(self, clip, fail_at=None):
+    self.clip, self.fail_at, self.starts, self.served = clip, fail_at, [], []
+
+  def __call__(self, start):
+    self.starts.append(start)
+    for i in itertools.count(start):
+      if i == self.fail_at:
+        raise KeyboardInterrupt("killed")
+      self.served.append(i)
+      yield {"video": self.clip[None], "episode_seed": np.array([100 + i])}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+  """Compile-bound tests: XLA's cheap optimisation level for this module only."""
+  previous = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", previous)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+  """A tiny SAVi overfitted on one clip (STEPS steps), with its workdir."""
+  config = tiny_config()
+  workdir = str(tmp_path_factory.mktemp("savi_run"))
+  stages.save_config(config, workdir)
+  episodes = [synthetic_episode(1), synthetic_episode(2)]
+  source = Source(episodes[0]["image"])
+  result = pretrain.train(config, workdir, source, episodes)
+  return {"config": config, "workdir": workdir, "result": result, "episodes": episodes, "source": source,
+          "comp": pretrain.compiled(config)}
+
+
+@pytest.fixture(scope="module")
+def encoder(trained):
+  return pretrain.load_encoder(trained["workdir"])
+
+
+def _tree_equal(a, b):
+  return all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b)))
+
+
+def test_slot_attention_is_equivariant_to_permuting_the_initial_slots():
+  module = savi.SlotAttention(num_iterations=3, mlp_size=32)
+  keys = jax.random.split(jax.random.key(0), 3)
+  slots = jax.random.normal(keys[0], (2, 4, 16))
+  inputs = jax.random.normal(keys[1], (2, 20, 8))
+  params = jax.jit(module.init)(keys[2], slots, inputs)
+  perm = jnp.array([2, 0, 3, 1])
+  apply = jax.jit(module.apply)
+  out = apply(params, slots, inputs)
+  out_perm = apply(params, slots[:, perm], inputs)
+  np.testing.assert_allclose(out_perm, out[:, perm], atol=1e-5)
+  assert not np.allclose(out, slots, atol=1e-3)  # the slots did move
+
+
+def test_a_tiny_model_overfits_one_clip(trained):
+  history = trained["result"]["history"]
+  assert [s for s, _ in history] == list(range(1, STEPS + 1))
+  first, last = history[0][1], history[-1][1]
+  assert last <= first / 10, (first, last)
+
+
+def test_training_writes_tensorboard_and_the_decomposition_figure(trained):
+  root = pretrain.savi_dir(trained["workdir"])
+  import os  # pylint: disable=import-outside-toplevel
+  assert os.path.isfile(os.path.join(root, "figures", f"step_{STEPS:07d}.png"))
+  assert any(name.startswith("events") for name in os.listdir(os.path.join(root, "tb")))
+  (step, metrics), = trained["result"]["eval"]
+  assert step == STEPS and -1 <= metrics["fg_ari"] <= 1 and 0 <= metrics["miou"] <= 1
+
+
+def test_masks_sum_to_one_per_pixel(trained):
+  video = trained["episodes"][1]["image"][None]
+  out = trained["comp"].eval_video(trained["result"]["params"], video)
+  assert out["masks"].shape == (1, 6, 3, 16, 16)
+  np.testing.assert_allclose(out["masks"].sum(axis=2), 1.0, atol=1e-5)
+  recon = (out["masks"][..., None] * out["rgb"]).sum(axis=2)
+  np.testing.assert_allclose(out["recon"], recon, atol=1e-5)
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(trained, encoder):
+  params = trained["result"]["params"]
+  assert _tree_equal(params, encoder.params)
+  video = trained["episodes"][1]["image"][None]
+  before = trained["comp"].eval_video(params, video)
+  after = trained["comp"].eval_video(encoder.params, video)
+  for key in ("slots", "recon", "masks"):
+    np.testing.assert_array_equal(np.asarray(before[key]), np.asarray(after[key]))
+  assert encoder.num_tokens == 3 and encoder.token_dim == 16 and encoder.identity.endswith(f"@{STEPS}")
+
+
+def test_step_form_equals_the_video_model(trained, encoder):
+  videos = np.stack([e["image"] for e in trained["episodes"]])
+  reference = np.concatenate([trained["comp"].eval_video(encoder.params, v[None])["slots"] for v in videos])
+  assert reference.shape == (2, 6, 3, 16)                                           # [B, T, K, D], scanned
+  one = encoder.encode_episode(videos[1])                                           # [T, K, D]
+  np.testing.assert_allclose(one, reference[1], atol=1e-5)
+  state, step = encoder.init_state(2), jax.jit(encoder.step)
+  for t in range(videos.shape[1]):                                                  # closed-loop form
+    tokens, state = step(encoder.params, state, videos[:, t])
+    np.testing.assert_allclose(tokens, reference[:, t], atol=1e-5)
+
+
+def test_resume_continues_at_the_saved_step_with_the_same_data(trained, tmp_path):
+  config, clip = trained["config"], trained["episodes"][0]["image"]
+  stages.save_config(config, str(tmp_path))
+  killed = Source(clip, fail_at=25)
+  with pytest.raises(KeyboardInterrupt):
+    pretrain.train(config, str(tmp_path), killed)
+  resumed = Source(clip)
+  result = pretrain.train(config, str(tmp_path), resumed)
+  assert resumed.starts == [20] and resumed.served == list(range(20, STEPS))
+  assert result["step"] == STEPS and [s for s, _ in result["history"]] == list(range(21, STEPS + 1))
+  assert _tree_equal(result["params"], trained["result"]["params"])
+  again = Source(clip, fail_at=0)  # already trained: skips without reading data
+  assert pretrain.train(config, str(tmp_path), again)["step"] == STEPS and not again.served
+
+
+def test_a_non_finite_loss_stops_naming_step_and_seeds(trained, tmp_path, monkeypatch):
+  comp, config = trained["comp"], trained["config"]
+  real = comp.train_step
+
+  def poisoned(state, video, key):
+    new_state, metrics = real(state, video, key)
+    if int(state["step"]) == 15:
+      metrics = dict(metrics, loss=jnp.float32(np.nan))
+    return new_state, metrics
+
+  monkeypatch.setattr(comp, "train_step", poisoned)
+  with pytest.raises(UserError, match=r"nan at step 15 \(batch 15, episode seeds \[115\]\).*step 10"):
+    pretrain.train(config, str(tmp_path), Source(trained["episodes"][0]["image"]))
+  from roboshape.train.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
+  with Checkpointer(str(tmp_path / "savi" / "checkpoints")) as ckpt:
+    assert ckpt.latest_step() == 10
+
+
+def test_bad_resolution_is_a_user_error():
+  config = tiny_config()
+  config.env.resolution = 24                     # 24 = 12 * 2: the automatic grid fits
+  pretrain.validate_config(config)
+  config.env.resolution = 25
+  with pytest.raises(UserError, match="grid_size"):
+    pretrain.validate_config(config)
+
+
+def _ari_by_pair_counting(a, b):
+  """ARI from the four pair counts over all item pairs (an independent formula: Hubert and Arabie's)."""
+  a, b = np.ravel(a), np.ravel(b)
+  i, j = np.triu_indices(a.size, k=1)
+  same_a, same_b = a[i] == a[j], b[i] == b[j]
+  n11 = np.sum(same_a & same_b)
+  n10 = np.sum(same_a & ~same_b)
+  n01 = np.sum(~same_a & same_b)
+  n00 = np.sum(~same_a & ~same_b)
+  return 2.0 * (n11 * n00 - n10 * n01) / ((n11 + n10) * (n10 + n00) + (n11 + n01) * (n01 + n00))
+
+
+def test_ari_known_values_and_pair_counting_reference():
+  assert decomposition.adjusted_rand_index([0, 0, 1, 1], [5, 5, 2, 2]) == pytest.approx(1.0)
+  assert decomposition.adjusted_rand_index([0, 0, 1, 1], [0, 1, 0, 1]) == pytest.approx(-0.5)
+  # By hand: table [[2, 1], [0, 2]]: index 2, rows 4, cols 4, expected 16/10, max 4 -> 0.4 / 2.4.
+  assert decomposition.adjusted_rand_index([0, 0, 0, 1, 1], [0, 0, 1, 1, 1]) == pytest.approx(0.4 / 2.4)
+  rng = np.random.default_rng(0)
+  for n, ka, kb in [(30, 3, 4), (57, 2, 6), (80, 5, 5)]:
+    a, b = rng.integers(0, ka, n), rng.integers(0, kb, n)
+    b[: n // 2] = a[: n // 2]  # partly agreeing
+    assert decomposition.adjusted_rand_index(a, b) == pytest.approx(_ari_by_pair_counting(a, b), abs=1e-12)
+
+
+def test_fg_ari_ignores_background_and_permutes_slots():
+  seg = np.array([[[0, 1, 3, 3], [0, 1, 4, 4]]], np.uint8)                   # [T=1, H=2, W=4]
+  slot_of = np.array([[[2, 2, 0, 0], [1, 1, 1, 1]]])                         # background slots are irrelevant
+  masks = np.moveaxis(np.eye(3)[slot_of], -1, 1)                             # [T, K, H, W] one-hot
+  assert decomposition.fg_ari(seg, masks) == pytest.approx(1.0)
+  assert decomposition.matched_miou(seg, masks) == pytest.approx((1.0 + 0.5) / 2)  # object 4 shares its slot
+  # With the table as foreground the slot holding id 1 also holds id 0 pixels: ARI over 6 pixels drops.
+  assert decomposition.fg_ari(seg, masks, background_ids=(0,)) == pytest.approx(
+      _ari_by_pair_counting(seg[seg > 0], slot_of[seg > 0]))
+  merged = np.moveaxis(np.eye(3)[np.zeros_like(slot_of)], -1, 1)             # one slot takes everything
+  assert decomposition.fg_ari(seg, merged) == pytest.approx(0.0)
