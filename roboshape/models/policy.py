@@ -1,0 +1,274 @@
+"""The object-centric transformer policy: a causal trunk over the history of frame tokens with [ACT] read-outs.
+
+Tokens. For each of the last T <= H frames, its N encoder tokens (K SAVi slots, or a baseline's global token)
+are projected to the trunk width and get that frame's learned time embedding (position 0 is the oldest frame of
+the window). Slots of one frame get no order: the per-token projection and attention are permutation-equivariant,
+so permuting the slots of a frame leaves every [ACT] output unchanged.
+
+[ACT] tokens. A learnable [ACT] vector, plus the time embedding of the frame it reads out at, is appended after
+the observation tokens, one per requested read-out frame q (`act_frames`). Attention mask:
+  - observation token of frame f  -> observation tokens of frames <= f (causal over time, all slots of a frame);
+  - [ACT] token of frame q        -> observation tokens of frames <= q, and itself;
+  - no token attends to another [ACT] token.
+So the [ACT] token of the last frame sees every history token and no later one, and [ACT] tokens never change
+the observation stream (the last block updates the [ACT] tokens only, since nothing reads the rest): training reads out at every frame of a window (one next-action target each), while
+control reads out at the newest frame only, with the same outputs. Because of the causal mask, the first q + 1
+frames of a window are themselves a valid window, so episode starts need no padding: at step t < H the policy
+reads out at position t of a window that holds frames 0..t (see roboshape/train/bc.py).
+
+  net = PolicyNet(width=256, num_layers=8, num_heads=4, max_history=10)
+  gmm = net.apply(params, tokens, act_frames)   # tokens [B, T, N, D], act_frames int [B, Q] -> GMM [B, Q, C, M, A]
+
+The `Policy` class at the end is the stateful closed-loop controller that wraps the frozen encoder and this net.
+"""
+import dataclasses
+from typing import Any, Callable, NamedTuple, Optional, Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from roboshape.models import heads
+
+
+class Block(nn.Module):
+  """A pre-LayerNorm transformer block: masked self-attention, then an MLP.
+
+  x [B, L, W], mask [B, 1, L, L] -> [B, L - first_query, W]: only tokens first_query.. are updated and returned
+  (the trunk's last block updates the [ACT] tokens alone, the only outputs it reads).
+  """
+  num_heads: int
+  mlp_ratio: int = 4
+  dropout: float = 0.1
+
+  @nn.compact
+  def __call__(self, x, mask, train: bool, first_query: int = 0):
+    width = x.shape[-1]
+    h = nn.LayerNorm(name="ln_attn")(x)
+    h = nn.MultiHeadDotProductAttention(num_heads=self.num_heads, dropout_rate=self.dropout,
+                                        deterministic=not train, name="attn")(
+                                            h[:, first_query:], h, mask=mask[:, :, first_query:])
+    x = x[:, first_query:] + nn.Dropout(self.dropout, deterministic=not train)(h)
+    h = nn.LayerNorm(name="ln_mlp")(x)
+    h = nn.Dense(self.mlp_ratio * width, name="mlp_in")(h)
+    h = nn.Dense(width, name="mlp_out")(nn.gelu(h))
+    return x + nn.Dropout(self.dropout, deterministic=not train)(h)
+
+
+def attention_mask(num_frames: int, num_tokens: int, act_frames: jax.Array) -> jax.Array:
+  """The trunk's boolean mask [B, 1, L, L], L = T*N + Q (see the module docstring); act_frames int [B, Q]."""
+  batch, q = act_frames.shape
+  obs_frame = jnp.repeat(jnp.arange(num_frames), num_tokens)                   # [T*N]
+  obs_frame = jnp.broadcast_to(obs_frame, (batch, obs_frame.shape[0]))
+  obs_obs = obs_frame[:, None, :] <= obs_frame[:, :, None]                     # [B, TN, TN]
+  obs_act = jnp.zeros((batch, obs_frame.shape[1], q), bool)                     # [B, TN, Q]
+  act_obs = obs_frame[:, None, :] <= act_frames[:, :, None]                    # [B, Q, TN]
+  act_act = jnp.broadcast_to(jnp.eye(q, dtype=bool), (batch, q, q))            # [B, Q, Q]
+  mask = jnp.concatenate([jnp.concatenate([obs_obs, obs_act], -1), jnp.concatenate([act_obs, act_act], -1)], 1)
+  return mask[:, None]
+
+
+class Trunk(nn.Module):
+  """tokens [B, T, N, D] float, act_frames int [B, Q] in [0, T) -> [ACT] outputs [B, Q, width].
+
+  Attributes:
+    width, num_layers, num_heads, mlp_ratio, dropout: the transformer encoder.
+    max_history: H, the number of learned time embeddings (T <= H).
+  """
+  width: int = 256
+  num_layers: int = 8
+  num_heads: int = 4
+  mlp_ratio: int = 4
+  dropout: float = 0.1
+  max_history: int = 10
+
+  @nn.compact
+  def __call__(self, tokens: jax.Array, act_frames: jax.Array, train: bool = False) -> jax.Array:
+    b, t, n, _ = tokens.shape
+    if t > self.max_history:
+      raise ValueError(f"a window of {t} frames is longer than the {self.max_history} time embeddings")
+    init = nn.initializers.normal(0.02)
+    time_emb = self.param("time_embedding", init, (self.max_history, self.width))
+    act_token = self.param("act_token", init, (self.width,))
+    x = nn.Dense(self.width, name="token_proj")(tokens.astype(jnp.float32)) + time_emb[:t, None, :]
+    x = x.reshape(b, t * n, self.width)
+    act = act_token + time_emb[act_frames]                                     # [B, Q, W]
+    x = jnp.concatenate([x, act], axis=1)
+    x = nn.Dropout(self.dropout, deterministic=not train)(x)
+    mask = attention_mask(t, n, act_frames)
+    for i in range(self.num_layers):
+      last = i == self.num_layers - 1
+      x = Block(self.num_heads, self.mlp_ratio, self.dropout, name=f"block_{i}")(
+          x, mask, train, first_query=t * n if last else 0)
+    return nn.LayerNorm(name="ln_out")(x)
+
+
+class PolicyNet(nn.Module):
+  """The trunk followed by the GMM head: tokens [B, T, N, D], act_frames [B, Q] -> GMM with [B, Q, C, M, A] leaves."""
+  width: int = 256
+  num_layers: int = 8
+  num_heads: int = 4
+  mlp_ratio: int = 4
+  dropout: float = 0.1
+  max_history: int = 10
+  action_dim: int = 7
+  num_modes: int = 5
+  chunk: int = 1
+  min_scale: float = 1e-4
+
+  @nn.compact
+  def __call__(self, tokens, act_frames, train: bool = False) -> heads.GMM:
+    h = Trunk(self.width, self.num_layers, self.num_heads, self.mlp_ratio, self.dropout, self.max_history,
+              name="trunk")(tokens, act_frames, train)
+    return heads.GMMHead(self.action_dim, self.num_modes, self.chunk, self.min_scale, hidden=self.width,
+                         name="head")(h)
+
+
+def net_from_config(policy_config) -> PolicyNet:
+  """The PolicyNet a `config.policy` section describes."""
+  c = policy_config
+  return PolicyNet(width=c.width, num_layers=c.num_layers, num_heads=c.num_heads, mlp_ratio=c.mlp_ratio,
+                   dropout=c.dropout, max_history=c.history, action_dim=c.action_dim, num_modes=c.num_modes,
+                   chunk=c.chunk, min_scale=c.min_scale)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Closed-loop control: the frozen encoder's state, the token history and the chunk ensemble, carried between steps.
+
+
+class Carry(NamedTuple):
+  """What the controller keeps between steps, for a batch of B environments.
+
+  Attributes:
+    enc_state: the encoder's recurrent state (every leaf with a leading batch axis B).
+    history: [B, H, N, D] tokens of the last frames, oldest first; rows >= count are unused.
+    count: int32 [B], frames seen since the env's reset.
+    chunks: [B, C, C, A] normalised action chunks predicted 0..C-1 steps ago (row j: j steps ago).
+    rng: a PRNG key for sampled actions.
+  """
+  enc_state: Any
+  history: jax.Array
+  count: jax.Array
+  chunks: jax.Array
+  rng: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class ControlSpec:
+  """Static settings of the control step.
+
+  Attributes:
+    history: frames the trunk sees at control time (<= the training history).
+    action: "mean" (mixture mean) or "sample" (a mode drawn by weight plus `noise` x its scale).
+    noise: the sampling noise scale, for action="sample".
+    ensemble_decay: k in the temporal ensembling weights exp(-k * i), i = 0 for the oldest prediction of the
+      current step (only with chunk > 1).
+  """
+  history: int
+  action: str = "mean"
+  noise: float = 0.1
+  ensemble_decay: float = 0.01
+
+
+def control_step(net: PolicyNet, spec: ControlSpec, encoder_step: Callable, norm_scale, norm_offset,
+                 params, enc_params, carry: Carry, frames: jax.Array):
+  """One control step, pure: frames uint8 [B, H, W, 3] -> (actions float32 [B, A] in env units, new carry)."""
+  tokens, enc_state = encoder_step(enc_params, carry.enc_state, frames)            # [B, N, D]
+  b, h = carry.history.shape[:2]
+  full = (carry.count >= h)[:, None, None, None]
+  history = jnp.where(full, jnp.roll(carry.history, -1, axis=1), carry.history)
+  slot = jnp.minimum(carry.count, h - 1)                                            # [B]
+  history = history.at[jnp.arange(b), slot].set(tokens.astype(history.dtype))
+  gmm = net.apply(params, history, slot[:, None], train=False)
+  gmm = jax.tree.map(lambda v: v[:, 0], gmm)                                        # [B, C, M, A] leaves
+  rng, sample_rng = jax.random.split(carry.rng)
+  if spec.action == "mean":
+    chunk = heads.gmm_mean(gmm)                                                     # [B, C, A]
+  else:
+    chunk = heads.gmm_sample(gmm, sample_rng, spec.noise)
+  count = carry.count + 1
+  chunks = jnp.roll(carry.chunks, 1, axis=1).at[:, 0].set(chunk)
+  c = chunks.shape[1]
+  age = jnp.arange(c)
+  now = chunks[:, age, age]                                                         # [B, C(age), A]
+  valid = age[None, :] < count[:, None]                                             # [B, C]
+  weights = jnp.where(valid, jnp.exp(spec.ensemble_decay * age.astype(jnp.float32))[None], 0.0)
+  action = jnp.sum(weights[..., None] * now, axis=1) / jnp.sum(weights, axis=1, keepdims=True)
+  action = action * norm_scale + norm_offset
+  return action.astype(jnp.float32), Carry(enc_state, history, count, chunks, rng)
+
+
+class Policy:
+  """A trained policy for closed-loop control: frame in, action out; the encoder state and history live inside.
+
+    policy.reset(batch_size=1)
+    action = policy.act(frame)            # uint8 [H, W, 3] -> float32 [7]
+    actions = policy.act_batch(frames)    # uint8 [B, H, W, 3] -> float32 [B, 7]
+    policy.reset_slots([2, 5])            # envs 2 and 5 of the batch start a new episode
+
+  One jitted step serves every call of a batch size (`num_traces` counts the traces, i.e. compilations).
+  """
+
+  def __init__(self, net: PolicyNet, params, encoder, spec: ControlSpec, norm_scale, norm_offset, seed: int = 0,
+               token_dtype=jnp.float32):
+    if spec.history > net.max_history:
+      raise ValueError(f"control history {spec.history} exceeds the training history {net.max_history}")
+    if spec.action not in ("mean", "sample"):
+      raise ValueError(f"unknown action mode {spec.action!r}: use 'mean' or 'sample'")
+    self.net, self.params, self.encoder, self.spec = net, params, encoder, spec
+    self._norm = (jnp.asarray(norm_scale, jnp.float32), jnp.asarray(norm_offset, jnp.float32))
+    self._seed = seed
+    self._token_dtype = token_dtype
+    self.num_traces = 0
+    self.carry: Optional[Carry] = None
+
+    def step(params, enc_params, carry, frames):
+      self.num_traces += 1  # runs only while jax traces, i.e. once per compilation
+      return control_step(net, spec, encoder.step, self._norm[0], self._norm[1], params, enc_params, carry, frames)
+    self._step = jax.jit(step)
+    self.reset(1)
+
+  @property
+  def batch_size(self) -> int:
+    return self.carry.count.shape[0]
+
+  def _fresh(self, batch_size: int) -> Carry:
+    """A new carry, on the default device: an encoder whose init_state is sharded otherwise (e.g. over a
+    one-device mesh) would make the second step see another input sharding than the first, and recompile."""
+    enc = self.encoder
+    return jax.device_put(Carry(
+        enc_state=enc.init_state(batch_size),
+        history=jnp.zeros((batch_size, self.spec.history, enc.num_tokens, enc.token_dim), self._token_dtype),
+        count=jnp.zeros((batch_size,), jnp.int32),
+        chunks=jnp.zeros((batch_size, self.net.chunk, self.net.chunk, self.net.action_dim), jnp.float32),
+        rng=jax.random.PRNGKey(self._seed)), jax.devices()[0])
+
+  def reset(self, batch_size: int = 1) -> None:
+    """Starts new episodes in all `batch_size` environments."""
+    self.carry = self._fresh(batch_size)
+
+  def reset_slots(self, indices: Sequence[int]) -> None:
+    """Starts a new episode in the environments `indices` of the batch; the others keep their memory."""
+    b = self.batch_size
+    mask = np.zeros((b,), bool)
+    mask[np.asarray(indices, int)] = True
+    fresh = self._fresh(b)
+    def pick(new, old):
+      if not hasattr(old, "shape") or old.ndim == 0 or old.shape[0] != b:
+        return old
+      return jnp.where(mask.reshape((b,) + (1,) * (old.ndim - 1)), new, old)
+    rng = self.carry.rng
+    self.carry = jax.tree.map(pick, fresh, self.carry)._replace(rng=rng)
+
+  def act_batch(self, frames) -> np.ndarray:
+    """uint8 [B, H, W, 3] -> float32 [B, A]; B must equal the batch size of the last reset."""
+    frames = jnp.asarray(frames)
+    if frames.shape[0] != self.batch_size:
+      raise ValueError(f"got {frames.shape[0]} frames for a policy reset with batch_size={self.batch_size}")
+    actions, self.carry = self._step(self.params, self.encoder.params, self.carry, frames)
+    return np.asarray(actions)
+
+  def act(self, frame) -> np.ndarray:
+    """uint8 [H, W, 3] -> float32 [A], for a policy reset with batch_size=1."""
+    return self.act_batch(np.asarray(frame)[None])[0]

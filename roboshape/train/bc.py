@@ -1,0 +1,327 @@
+"""The "train_policy" stage: behaviour cloning of the transformer policy on cached frozen-encoder features.
+
+  python launch.py --config=configs/pick_savi.py:tiny          # the whole chain; this stage after "cache"
+  policy = roboshape.train.bc.load_policy(workdir)             # closed-loop controller (contract D)
+
+Samples. A sample is a window of H consecutive cached frames of one training episode, frames s .. s+H-1 with
+s uniform over the episode's windows; the [ACT] token of window position p predicts action s+p (and the next
+C-1 with chunking), every position is a target (NLL averaged over them). Episode starts need no padding:
+the trunk is causal over time, so positions 0..p of the window starting at frame 0 are exactly what control sees
+at step p < H (it reads out at the newest frame of a growing history; see roboshape/models/policy.py). Episodes
+shorter than H repeat their last frame and mask the targets past their end. Only successful demos are used.
+
+Outputs in <workdir>/policy/: checkpoints/ (orbax, train state {params, opt_state, step}), tb/ (TensorBoard:
+train NLL, learning rate, gradient norm, validation NLL and action MSE), norm_stats.json (the action
+normalisation: a = scale * a_norm + offset; identity when the demos' actions already lie in [-1, 1]),
+summary.json (the final validation figures). The stage skips when the last checkpoint is at config's steps.
+"""
+import functools
+import json
+import os
+from typing import Dict, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm import tqdm
+
+from roboshape.cli import UserError
+from roboshape.models import heads
+from roboshape.models import policy as policy_lib
+from roboshape.train import cache
+from roboshape.train.checkpoint import Checkpointer
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Action normalisation.
+
+
+def norm_stats(actions: np.ndarray) -> Dict[str, list]:
+  """Statistics of demo actions [F, A]: identity when all lie in [-1, 1], else min/max mapped onto [-1, 1]."""
+  lo, hi = actions.min(axis=0), actions.max(axis=0)
+  if lo.min() >= -1.0 and hi.max() <= 1.0:
+    scale, offset = np.ones_like(lo), np.zeros_like(lo)
+  else:
+    offset = (hi + lo) / 2
+    scale = np.where(hi - lo > 1e-8, (hi - lo) / 2, 1.0)
+  return dict(scale=scale.tolist(), offset=offset.tolist(), min=lo.tolist(), max=hi.tolist(),
+              mean=actions.mean(axis=0).tolist(), std=actions.std(axis=0).tolist())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Windows of cached features.
+
+
+class Windows:
+  """The windows of one split's cached episodes, gathered into batches.
+
+  Args:
+    data: `cache.load_split` output (features [F, N, D], action [F, A], offsets [E + 1], success [E]).
+    history: H.
+    chunk: C.
+    normalise: (scale, offset) arrays [A]; targets are (action - offset) / scale.
+    successful_only: drop failed episodes.
+  """
+
+  def __init__(self, data: dict, history: int, chunk: int, normalise, successful_only: bool = True):
+    self.features, self.history, self.chunk = data["features"], history, chunk
+    scale, offset = (np.asarray(v, np.float32) for v in normalise)
+    self.action = (data["action"] - offset) / scale
+    keep = np.flatnonzero(data["success"]) if successful_only else np.arange(len(data["success"]))
+    if not len(keep):
+      raise UserError("no successful episodes in the cached dataset: nothing to imitate.")
+    starts, frames = data["offsets"][keep], np.diff(data["offsets"])[keep]
+    self.num_episodes, self.num_actions = len(keep), int((frames - 1).sum())
+    per_episode = np.maximum(frames - 1 - history, 0) + 1            # windows per episode (T - H + 1, at least 1)
+    self.episode_start = np.repeat(starts, per_episode)
+    self.episode_frames = np.repeat(frames, per_episode)
+    self.window_start = np.concatenate([np.arange(n) for n in per_episode])
+
+  def __len__(self) -> int:
+    return len(self.window_start)
+
+  def gather(self, rows: np.ndarray) -> dict:
+    """Windows `rows` -> tokens [B, H, N, D], action [B, H, C, A], mask float32 [B, H, C]."""
+    h, c = self.history, self.chunk
+    start, frames, s = self.episode_start[rows], self.episode_frames[rows], self.window_start[rows]
+    local = s[:, None] + np.arange(h)[None]                                            # [B, H]
+    frame_idx = start[:, None] + np.minimum(local, frames[:, None] - 1)
+    target = local[:, :, None] + np.arange(c)[None, None]                               # [B, H, C]
+    mask = target < (frames - 1)[:, None, None]
+    action_idx = start[:, None, None] + np.minimum(target, frames[:, None, None] - 1)
+    return dict(tokens=np.asarray(self.features[frame_idx], np.float32), action=self.action[action_idx],
+                mask=mask.astype(np.float32))
+
+  def sample(self, batch_size: int, seed: int, step: int) -> dict:
+    """A training batch, the same for the same (seed, step), so a resumed run sees the same data."""
+    rng = np.random.default_rng([seed, step])
+    return self.gather(rng.integers(0, len(self), size=batch_size))
+
+  def eval_batches(self, batch_size: int, max_samples: int):
+    """Every window (evenly thinned to at most `max_samples`) in fixed-size batches; padding rows have mask 0."""
+    rows = np.arange(len(self))
+    if len(rows) > max_samples:
+      rows = rows[np.linspace(0, len(rows) - 1, max_samples).astype(int)]
+    for i in range(0, len(rows), batch_size):
+      chunk = rows[i:i + batch_size]
+      batch = self.gather(np.concatenate([chunk, np.repeat(chunk[-1:], batch_size - len(chunk))]))
+      batch["mask"][len(chunk):] = 0.0
+      yield batch
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Pure training functions.
+
+
+def make_schedule(train_config) -> optax.Schedule:
+  """Linear warmup from 0 to the learning rate, then cosine decay to a tenth of it at the last step."""
+  t = train_config
+  return optax.warmup_cosine_decay_schedule(0.0, t.learning_rate, max(t.warmup_steps, 1),
+                                            max(t.steps, t.warmup_steps + 1), end_value=0.1 * t.learning_rate)
+
+
+def make_optimizer(train_config) -> optax.GradientTransformation:
+  """AdamW on the warmup + cosine schedule, after global-norm gradient clipping."""
+  return optax.chain(optax.clip_by_global_norm(train_config.grad_clip),
+                     optax.adamw(make_schedule(train_config), weight_decay=train_config.weight_decay))
+
+
+def _read_out_frames(batch_size: int, history: int) -> jax.Array:
+  return jnp.broadcast_to(jnp.arange(history), (batch_size, history))
+
+
+def losses(net, params, batch, rng=None, train: bool = False):
+  """NLL [B, H, C] and squared error of the mixture mean [B, H, C, A], in normalised action units."""
+  tokens = batch["tokens"]
+  gmm = net.apply(params, tokens, _read_out_frames(tokens.shape[0], tokens.shape[1]), train=train,
+                  rngs={"dropout": rng} if train else None)
+  nll = -heads.gmm_log_prob(gmm, batch["action"])
+  sq = (heads.gmm_mean(gmm) - batch["action"]) ** 2
+  return nll, sq
+
+
+def init_state(net, optimizer, tokens_shape, seed: int):
+  """The train state {params, opt_state, step} for tokens of shape [B, H, N, D] (built by one compiled call)."""
+  def build():
+    params = net.init(jax.random.PRNGKey(seed), jnp.zeros(tokens_shape, jnp.float32),
+                      _read_out_frames(tokens_shape[0], tokens_shape[1]))
+    return dict(params=params, opt_state=optimizer.init(params), step=jnp.zeros((), jnp.int32))
+  return jax.jit(build)()
+
+
+def make_train_step(net, optimizer):
+  """The jitted pure step `(state, batch, rng) -> (state, metrics)`; dropout uses fold_in(rng, state's step)."""
+  def loss_fn(params, batch, rng):
+    nll, sq = losses(net, params, batch, rng, train=True)
+    denom = jnp.maximum(batch["mask"].sum(), 1.0)
+    return jnp.sum(nll * batch["mask"]) / denom, jnp.sum(sq.sum(-1) * batch["mask"]) / denom
+  @jax.jit
+  def step(state, batch, rng):
+    rng = jax.random.fold_in(rng, state["step"])
+    (loss, sq), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, rng)
+    updates, opt_state = optimizer.update(grads, state["opt_state"], state["params"])
+    params = optax.apply_updates(state["params"], updates)
+    metrics = dict(nll=loss, action_mse=sq / batch["action"].shape[-1], grad_norm=optax.tree.norm(grads))
+    return dict(params=params, opt_state=opt_state, step=state["step"] + 1), metrics
+  return step
+
+
+def make_eval_step(net):
+  """The jitted `(params, batch) -> (sum NLL, sum squared error per action dim [A], count)` over masked targets."""
+  @jax.jit
+  def step(params, batch):
+    nll, sq = losses(net, params, batch)
+    return (jnp.sum(nll * batch["mask"]), jnp.sum(sq * batch["mask"][..., None], axis=(0, 1, 2)),
+            batch["mask"].sum())
+  return step
+
+
+def evaluate(eval_step, params, windows: Windows, batch_size: int, max_samples: int, scale) -> dict:
+  """Validation NLL (of normalised actions) and action MSE of the mixture mean (env units, mean over dims)."""
+  nll, sq, n = 0.0, 0.0, 0.0
+  for batch in windows.eval_batches(batch_size, max_samples):
+    a, b, c = eval_step(params, batch)
+    nll, sq, n = nll + float(a), sq + np.asarray(b, np.float64), n + float(c)
+  mse = float(np.mean(sq * np.square(np.asarray(scale, np.float64)))) / max(n, 1.0)
+  return dict(nll=nll / max(n, 1.0), action_mse=mse, targets=n)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The stage.
+
+
+def policy_dir(workdir: str) -> str:
+  return os.path.join(workdir, "policy")
+
+
+def _write_json(path: str, value) -> None:
+  tmp = path + ".tmp"
+  with open(tmp, "w") as f:
+    json.dump(value, f, indent=2)
+  os.replace(tmp, path)
+
+
+def train(config, workdir: str, feature_path: str) -> dict:
+  """Trains (or resumes) the policy on the features cached in `feature_path`; returns the final validation metrics."""
+  pc, tc = config.policy, config.policy.train
+  out = policy_dir(workdir)
+  os.makedirs(out, exist_ok=True)
+  ckpt = Checkpointer(os.path.join(out, "checkpoints"), keep=2)
+  summary_path = os.path.join(out, "summary.json")
+  if (ckpt.latest_step() or 0) >= tc.steps and os.path.exists(summary_path):
+    print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
+    ckpt.close()
+    with open(summary_path) as f:
+      return json.load(f)
+  train_data, val_data = cache.load_split(feature_path, "train"), cache.load_split(feature_path, "val")
+  stats_path = os.path.join(out, "norm_stats.json")
+  if os.path.exists(stats_path):
+    with open(stats_path) as f:
+      stats = json.load(f)
+  else:
+    valid_rows = np.concatenate([np.arange(a, b - 1) for a, b in zip(train_data["offsets"][:-1],
+                                                                      train_data["offsets"][1:])])
+    stats = norm_stats(train_data["action"][valid_rows])
+    _write_json(stats_path, stats)
+  normalise = (stats["scale"], stats["offset"])
+  train_w = Windows(train_data, pc.history, pc.chunk, normalise)
+  val_w = Windows(val_data, pc.history, pc.chunk, normalise)
+  print(f"[train_policy] {train_w.num_episodes} train episodes ({len(train_w)} windows), "
+        f"{val_w.num_episodes} val episodes; tokens {train_data['features'].shape[1:]}", flush=True)
+
+  net = policy_lib.net_from_config(pc)
+  optimizer, schedule = make_optimizer(tc), make_schedule(tc)
+  n, d = train_data["features"].shape[1:]
+  state = init_state(net, optimizer, (tc.batch_size, pc.history, n, d), config.seed)
+  state = ckpt.restore_or(state)
+  train_step, eval_step = make_train_step(net, optimizer), make_eval_step(net)
+  start = int(state["step"])
+  base_rng = jax.random.PRNGKey(config.seed)
+  from tensorboardX import SummaryWriter  # pylint: disable=import-outside-toplevel
+  writer = SummaryWriter(os.path.join(out, "tb"))
+  metrics = None
+  val = {}
+  for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
+    batch = train_w.sample(tc.batch_size, config.seed, step)
+    state, metrics = train_step(state, batch, base_rng)
+    done = step + 1
+    if done % tc.log_every == 0 or done == tc.steps:
+      for k, v in metrics.items():
+        writer.add_scalar(f"train/{k}", float(v), done)
+      writer.add_scalar("train/learning_rate", float(schedule(step)), done)
+    if done % tc.eval_every == 0 or done == tc.steps:
+      val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
+      writer.add_scalar("val/nll", val["nll"], done)
+      writer.add_scalar("val/action_mse", val["action_mse"], done)
+      tqdm.write(f"[train_policy] step {done}: train nll {float(metrics['nll']):.3f}, "
+                 f"val nll {val['nll']:.3f}, val action mse {val['action_mse']:.5f}")
+    if done % tc.checkpoint_every == 0 or done == tc.steps:
+      ckpt.save(done, state)
+  writer.close()
+  ckpt.close()
+  if not val:
+    val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
+  summary = dict(step=int(state["step"]), val_nll=val["nll"], val_action_mse=val["action_mse"],
+                 train_episodes=train_w.num_episodes, val_episodes=val_w.num_episodes,
+                 features=os.path.abspath(feature_path))
+  _write_json(summary_path, summary)
+  return summary
+
+
+def run(config, workdir: str) -> None:
+  """The train_policy stage: caches the features if the cache stage has not, then trains."""
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  ckpt_dir = os.path.join(policy_dir(workdir), "checkpoints")
+  if os.path.isdir(ckpt_dir) and os.path.exists(os.path.join(policy_dir(workdir), "summary.json")):
+    with Checkpointer(ckpt_dir) as ckpt:
+      if (ckpt.latest_step() or 0) >= config.policy.train.steps:
+        print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
+        return
+  encoder = encoders.build_encoder(config, workdir)
+  train(config, workdir, cache.build(config, workdir, encoder))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Loading for closed-loop control.
+
+
+def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Optional[int] = None):
+  """The trained trunk+head params from <workdir>/policy/checkpoints (latest step by default)."""
+  pc = config.policy
+  net = policy_lib.net_from_config(pc)
+  optimizer = make_optimizer(pc.train)
+  like = jax.eval_shape(functools.partial(init_state, net, optimizer, (1, pc.history, num_tokens, token_dim),
+                                          config.seed))
+  ckpt_dir = os.path.join(policy_dir(workdir), "checkpoints")
+  if not os.path.isdir(ckpt_dir):
+    raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
+  with Checkpointer(ckpt_dir) as ckpt:
+    if ckpt.latest_step() is None:
+      raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
+    state = ckpt.restore(like, step)
+  return net, state["params"]
+
+
+def load_policy(workdir: str, history: Optional[int] = None, action: Optional[str] = None,
+                step: Optional[int] = None, seed: int = 0) -> policy_lib.Policy:
+  """The closed-loop `Policy` of the run in `workdir` (contract D).
+
+  Args:
+    workdir: a run's workdir (config.json, policy/checkpoints, policy/norm_stats.json, the encoder's files).
+    history: frames seen at control time (default config.policy.eval.history, 0 meaning the training history).
+    action: "mean" or "sample" (default config.policy.eval.action).
+    step: the checkpoint step (default: the latest).
+    seed: the sampling seed (action="sample").
+  """
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  config = stages.load_config(workdir)
+  encoder = encoders.build_encoder(config, workdir)
+  net, params = load_params(config, workdir, encoder.num_tokens, encoder.token_dim, step)
+  with open(os.path.join(policy_dir(workdir), "norm_stats.json")) as f:
+    stats = json.load(f)
+  ev = config.policy.eval
+  spec = policy_lib.ControlSpec(history=history or ev.history or config.policy.history,
+                                action=action or ev.action, noise=ev.noise, ensemble_decay=ev.ensemble_decay)
+  return policy_lib.Policy(net, params, encoder, spec, stats["scale"], stats["offset"], seed=seed)
