@@ -42,8 +42,62 @@ def load_config(workdir: str):
     return ml_collections.ConfigDict(json.load(f))
 
 
+def grid_configs(config, workdir: str):
+  """(task, encoder, config, workdir) of each run of a grid config, in the order the grid runs them.
+
+  A grid config (configs/reproduce.py) is an experiment config plus `grid.tasks` and `grid.encoders`; each run
+  is that config with its task and encoder set, in <workdir>/<task>_<encoder>/, reading the task's dataset from
+  <workdir>/data/<task> (shared by the task's runs; collected once). SAVi runs come first within a task.
+  """
+  import ml_collections  # pylint: disable=import-outside-toplevel
+  base = config.to_dict()
+  base.pop("grid")
+  data_root = config.data.dir or os.path.join(workdir, "data")
+  encoders = sorted(config.grid.encoders, key=lambda e: e != "savi")
+  for task in config.grid.tasks:
+    for encoder in encoders:
+      sub = ml_collections.ConfigDict(base)
+      sub.task, sub.encoder, sub.name = task, encoder, f"{task}_{encoder}"
+      sub.stages = tuple(s for s in config.stages if s != "report" and (encoder == "savi" or s != "pretrain"))
+      sub.data.dir = os.path.join(data_root, task)
+      yield task, encoder, sub, os.path.join(workdir, f"{task}_{encoder}")
+
+
+def run_grid(config, workdir: str) -> None:
+  """Runs every (task, encoder) of a grid config, then the report over all of them.
+
+  A baseline (any encoder but SAVi) whose run raises `UserError` (e.g. its pretrained weights are absent) is
+  recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
+  prints it as a "skipped: <reason>" line.
+  """
+  unknown = [s for s in config.stages if s not in STAGE_MODULES]
+  if unknown:
+    raise UserError(f"unknown stage(s) {', '.join(unknown)}; stages are {', '.join(STAGE_MODULES)}.")
+  save_config(config, workdir)
+  for task, encoder, sub, sub_dir in grid_configs(config, workdir):
+    skipped = os.path.join(sub_dir, "SKIPPED.json")
+    print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
+    try:
+      run(sub, sub_dir)
+    except UserError as e:
+      if encoder == "savi":
+        raise
+      os.makedirs(sub_dir, exist_ok=True)
+      with open(skipped, "w") as f:
+        json.dump({"reason": str(e)}, f)
+      print(f"[roboshape] skipped {task} x {encoder}: {e}", flush=True)
+      continue
+    if os.path.exists(skipped):
+      os.remove(skipped)
+  if "report" in config.stages:
+    importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+
+
 def run(config, workdir: str) -> None:
-  """Runs config.stages in order, each as `run(config, workdir)` of its module."""
+  """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`)."""
+  if "grid" in config:
+    run_grid(config, workdir)
+    return
   unknown = [s for s in config.stages if s not in STAGE_MODULES]
   if unknown:
     raise UserError(f"unknown stage(s) {', '.join(unknown)}; stages are {', '.join(STAGE_MODULES)}.")

@@ -1,0 +1,123 @@
+"""Closed-loop evaluation throughput: the SAVi policy vs the oracle expert driving the same simulator workers.
+
+  .venv/bin/python benchmarks/eval_speed.py [--task push] [--variant small] [--workers 0] [--episodes 8]
+
+In one pool (same workers, same run), alternately:
+  expert: `pool.collect(seeds)` (the oracle expert steps the envs inside the workers), env steps/s;
+  policy: `closed_loop.run_rollouts` with a SAVi + transformer policy of the variant's architecture and random
+          weights (speed does not depend on the weights): the policy runs in this process, batched over the
+          pool's envs, exactly as the evaluate stage runs it. Env steps/s counts only live env steps.
+Each is measured twice (expert, policy, expert, policy) and the better of each pair kept, to damp the noise of a
+shared machine. Prints both rates, their ratio (the bar: >= 0.6 on a 2-core CPU), the policy's own cost per
+batched step, and what the paper's evaluation grid (3 tasks x 3 encoders x 4 levels x 300 rollouts) would take
+at the measured rate.
+"""
+import argparse
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import jax  # pylint: disable=wrong-import-position
+import numpy as np  # pylint: disable=wrong-import-position
+
+from configs import common  # pylint: disable=wrong-import-position
+from roboshape.eval import closed_loop  # pylint: disable=wrong-import-position
+
+
+def random_savi_policy(config):
+  """A `Policy` (contract D) over a randomly initialised SAVi encoder, with the config's architectures."""
+  # pylint: disable=import-outside-toplevel
+  import functools
+  import jax.numpy as jnp
+  from roboshape.models import policy as policy_lib
+  from roboshape.models.encoder import FrozenEncoder
+  from roboshape.train import bc
+  from roboshape.train import pretrain
+  comp = pretrain.compiled(config)
+  r = config.env.resolution
+  params = comp.init_state(jax.random.key(0), (1, config.savi.train.clip_length, r, r, 3))["params"]
+  init = comp.initial_slots(params, 1)[0]
+  encoder = FrozenEncoder(
+      name="savi", params=params, step=functools.partial(pretrain._frozen_step, comp.model),  # pylint: disable=protected-access
+      init_state=lambda b: jnp.broadcast_to(init, (b, *init.shape)), num_tokens=comp.model.num_slots,
+      token_dim=comp.model.slot_size, identity="savi:random")
+  net = policy_lib.net_from_config(config.policy)
+  state = bc.init_state(net, bc.make_optimizer(config.policy.train),
+                        (1, config.policy.history, encoder.num_tokens, encoder.token_dim), 0)
+  spec = policy_lib.ControlSpec(history=config.policy.history)
+  return policy_lib.Policy(net, state["params"], encoder, spec, np.ones(7, np.float32), np.zeros(7, np.float32))
+
+
+def time_expert(pool, seeds):
+  start = time.perf_counter()
+  steps = lengths = 0
+  for episode in pool.collect(seeds):
+    steps += len(episode["action"])
+    lengths += 1
+  return steps / (time.perf_counter() - start), steps / max(lengths, 1)
+
+
+def time_policy(pool, policy, seeds):
+  lengths = []
+  plan = [closed_loop.Rollout("train", 0, i, s) for i, s in enumerate(seeds)]
+  start = time.perf_counter()
+  closed_loop.run_rollouts(pool, policy, plan, lambda r, res, fr: lengths.append(res["length"]), desc="policy")
+  return sum(lengths) / (time.perf_counter() - start), float(np.mean(lengths))
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--task", default="push", choices=common.TASKS)
+  parser.add_argument("--variant", default="small", choices=common.VARIANTS)
+  parser.add_argument("--workers", type=int, default=0, help="sim workers (0: one per core)")
+  parser.add_argument("--episodes", type=int, default=0, help="episodes per measurement (0: 2 per env)")
+  parser.add_argument("--max-steps", type=int, default=0, help="episode step limit (0: the task's horizon)")
+  args = parser.parse_args()
+  from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
+
+  config = common.get_config(args.task, "savi", args.variant)
+  config.env.max_episode_steps = args.max_steps
+  policy = random_savi_policy(config)
+  spec = EnvSpec.from_config(config, level="train")
+  print(f"task {args.task}, SAVi+policy of variant {args.variant!r} (random weights), jax on "
+        f"{jax.devices()[0].platform}, {os.cpu_count()} CPUs", flush=True)
+  with SimPool(spec, num_workers=args.workers) as pool:
+    n = pool.num_envs
+    episodes = args.episodes or 2 * n
+    # Warm-up: worker start, shaders, the policy's compilation for this batch size.
+    policy.reset(batch_size=n)
+    frames = pool.reset([10**9 + 900_000 + i for i in range(n)])
+    for _ in range(3):
+      pool.step(np.clip(policy.act_batch(frames), -1, 1))
+    list(pool.collect([2 * 10**9 + i for i in range(n)]))
+    t0 = time.perf_counter()
+    for _ in range(20):
+      jax.block_until_ready(policy.act_batch(frames))
+    act_ms = (time.perf_counter() - t0) / 20 * 1e3
+
+    expert, policy_rates, expert_len, policy_len = [], [], 0.0, 0.0
+    for rep in range(2):
+      base = 10**9 + 800_000 + rep * 10_000
+      rate, expert_len = time_expert(pool, [base + i for i in range(episodes)])
+      expert.append(rate)
+      rate, policy_len = time_policy(pool, policy, [base + 5_000 + i for i in range(episodes)])
+      policy_rates.append(rate)
+      print(f"  round {rep + 1}: expert {expert[-1]:.1f} env steps/s, SAVi policy {policy_rates[-1]:.1f} env "
+            f"steps/s", flush=True)
+  e, p = max(expert), max(policy_rates)
+  print(f"envs in the pool: {n}; episodes per measurement: {episodes}")
+  print(f"policy act_batch alone (B={n}, no simulator): {act_ms:.1f} ms per batched step")
+  print(f"expert: {e:.1f} env steps/s (mean episode {expert_len:.0f} steps)")
+  print(f"SAVi policy: {p:.1f} env steps/s (mean episode {policy_len:.0f} steps, random weights: mostly horizon)")
+  print(f"ratio policy/expert: {p / e:.2f} (bar >= 0.6)")
+  rollouts = 3 * 3 * 4 * 300
+  for label, length in (("every rollout runs to the horizon", policy_len), ("rollouts as long as the expert's",
+                                                                             expert_len)):
+    hours = rollouts * length / p / 3600
+    print(f"paper grid ({rollouts} rollouts), {label} ({length:.0f} steps): {hours:.1f} h at {p:.1f} env steps/s")
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,278 @@
+"""The `evaluate` stage: closed-loop rollouts of the trained policy under each generalization level.
+
+For each level in `config.eval.levels`, S = `config.eval.num_seeds` evaluation seeds x R =
+`config.eval.rollouts_per_seed` rollouts. The simulator runs in the bridge's pool (worker processes on CPU, one
+batched process with `sim_backend="physx_cuda"`); the policy runs in this process, batched over the pool's envs.
+
+Seed scheme. Rollout r of evaluation seed s gets the env seed
+
+  config.eval.seed_offset + s * 100_000 + r          (seed_offset = 1_000_000_000 by default)
+
+the same at every level (so levels are compared on the same layouts, only what the level changes differs). The
+training and validation demos use small seeds (< 10^8), so evaluation layouts are never training layouts.
+
+Rollouts run in waves of `pool.num_envs`: the pool resets the envs of a wave together (`pool.reset(seeds)`), the
+policy's history is cleared for those slots (`policy.reset_slots`), and the wave is stepped until every episode is
+done (success or horizon; a done env is a no-op in the pool). A finished rollout is appended to
+<workdir>/eval/results.jsonl at once, so a crash keeps it and a rerun skips it. A simulator worker that dies
+(`SimWorkerError`) is replaced (`pool.restart()`) and the wave's unfinished rollouts are re-run, up to
+`config.eval.max_retries` times each, alone in their wave so that a rollout that kills its worker cannot sink
+the others; past that the rollout is recorded as ended "worker_crash" and left out of
+the statistics (tables say how many). Actions are clipped to [-1, 1] before they reach the env.
+
+Outputs in <workdir>/eval/: results.jsonl (the log), results.json (every rollout + per-level summary), results.csv,
+table.md, table.tex, success_by_level.png, videos/<level>_s<seed>.{mp4,gif} for the first
+`config.eval.videos_per_level` rollouts of each level, and for SAVi videos/<...>_slots.{mp4,gif}: the camera frame,
+SAVi's reconstruction and every slot beside it (roboshape.eval.videos.SaviSlotVideo, the paper's Figure 8).
+"""
+import collections
+import dataclasses
+import hashlib
+import os
+import time
+from typing import Callable, Dict, Iterable, List, Optional, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from roboshape.cli import UserError
+from roboshape.eval import plots
+from roboshape.eval import results as results_lib
+from roboshape.eval import tables
+from roboshape.eval import videos
+
+SEED_STRIDE = 100_000
+LEVELS = ("train", "L1", "L2", "L3")
+
+
+@dataclasses.dataclass(frozen=True)
+class Rollout:
+  """One planned rollout: its level, evaluation-seed index, index within that seed, and env seed."""
+  level: str
+  seed_index: int
+  rollout: int
+  seed: int
+
+
+def rollout_plan(levels: Sequence[str], num_seeds: int, rollouts_per_seed: int,
+                 seed_offset: int = 1_000_000_000) -> List[Rollout]:
+  """Every rollout of an evaluation, level by level, in a fixed order (see the module docstring's seed scheme)."""
+  bad = [l for l in levels if l not in LEVELS]
+  if bad:
+    raise UserError(f"unknown evaluation level(s) {bad}; config.eval.levels takes {', '.join(LEVELS)}.")
+  if not 0 < rollouts_per_seed <= SEED_STRIDE:
+    raise UserError(f"config.eval.rollouts_per_seed={rollouts_per_seed}: use 1..{SEED_STRIDE}.")
+  if num_seeds < 1:
+    raise UserError(f"config.eval.num_seeds={num_seeds}: use 1 or more.")
+  return [Rollout(level, s, r, seed_offset + s * SEED_STRIDE + r)
+          for level in levels for s in range(num_seeds) for r in range(rollouts_per_seed)]
+
+
+# on_done(rollout, result dict(success, length, ended), frames uint8 [T+1, H, W, 3] or None)
+OnDone = Callable[[Rollout, Dict, Optional[np.ndarray]], None]
+
+
+def run_rollouts(pool, policy, rollouts: Sequence[Rollout], on_done: OnDone, record: Iterable[Rollout] = (),
+                 max_retries: int = 2, worker_error=Exception, desc: str = "rollouts", initial=(0, 0)) -> None:
+  """Rolls `policy` out in `pool` for every rollout; calls `on_done` as each one ends.
+
+  Args:
+    pool: has `num_envs`, `reset(seeds) -> uint8 [N,H,W,3]`, `step(actions [N,7]) -> dict(image, success, done,
+      elapsed)` and `restart()` (the sim bridge's pool, or a fake in tests).
+    policy: has `reset(batch_size)`, `reset_slots(indices)` and `act_batch(frames [B,H,W,3]) -> [B,7]`; it always
+      sees a full batch of `pool.num_envs` frames (a short last wave is padded with black frames).
+    rollouts: what to run.
+    on_done: called once per rollout with its result and, for rollouts in `record`, its frames.
+    record: rollouts whose frames to keep for videos.
+    max_retries: how many times a rollout whose worker died is re-run before it is reported as "worker_crash".
+    worker_error: the exception a dead worker raises (`roboshape.sim.SimWorkerError`).
+    desc, initial: the progress bar's label and the (done, successes) it starts from.
+  """
+  n = int(pool.num_envs)
+  record = set(record)
+  queue = collections.deque(rollouts)
+  retries = collections.Counter()
+  policy.reset(batch_size=n)
+  stats = {"done": initial[0], "success": initial[1]}
+  bar = tqdm(total=initial[0] + len(queue), initial=initial[0], desc=desc, unit="rollout", dynamic_ncols=True)
+
+  def finish(r, result, frames):
+    on_done(r, result, frames)
+    if result["ended"] != "worker_crash":
+      stats["done"] += 1
+      stats["success"] += int(result["success"])
+    bar.update(1)
+    if stats["done"]:
+      bar.set_postfix_str(f"success {stats['success'] / stats['done']:.2f} ({stats['success']}/{stats['done']})")
+
+  try:
+    while queue:
+      if retries[queue[0]]:
+        wave = [queue.popleft()]    # a rollout that saw a crash re-runs alone, so a culprit can't sink others
+      else:
+        wave = []
+        while queue and len(wave) < n and not retries[queue[0]]:
+          wave.append(queue.popleft())
+      finished = set()
+      try:
+        _run_wave(pool, policy, wave, n, record, finished, finish)
+      except worker_error as e:  # pylint: disable=broad-except
+        lines = [l.strip() for l in str(e).strip().splitlines() if l.strip()] or [type(e).__name__]
+        first = lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
+        tqdm.write(f"[roboshape] simulator worker died ({first}); restarting it and re-running "
+                   f"{len(wave) - len(finished)} unfinished rollout(s)")
+        pool.restart()
+        for r in reversed([r for r in wave if r not in finished]):
+          retries[r] += 1
+          if retries[r] > max_retries:
+            tqdm.write(f"[roboshape] rollout {r.level}/seed {r.seed} lost its worker {retries[r]} times: "
+                       "reported as worker_crash")
+            finish(r, dict(success=False, length=0, ended="worker_crash"), None)
+          else:
+            queue.appendleft(r)
+  finally:
+    bar.close()
+
+
+def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: set, finish) -> None:
+  """Resets the wave's envs, steps them until all are done, reports each rollout as it ends."""
+  k = len(wave)
+  obs = np.asarray(pool.reset([r.seed for r in wave]))
+  policy.reset_slots(list(range(n)))
+  frames = {i: [obs[i]] for i, r in enumerate(wave) if r in record}
+  active = np.ones(k, bool)
+  while active.any():
+    batch = obs if k == n else np.concatenate([obs, np.zeros((n - k,) + obs.shape[1:], obs.dtype)])
+    actions = np.clip(np.asarray(policy.act_batch(batch), np.float32)[:k], -1.0, 1.0)
+    out = pool.step(actions)
+    obs = np.asarray(out["image"])
+    for i in np.flatnonzero(active):
+      if i in frames:
+        frames[i].append(obs[i])
+      if bool(out["done"][i]):
+        active[i] = False
+        success = bool(out["success"][i])
+        finished.add(wave[i])
+        finish(wave[i], dict(success=success, length=int(out["elapsed"][i]), ended="success" if success else "horizon"),
+               np.stack(frames[i]) if i in frames else None)
+
+
+def policy_fingerprint(workdir: str) -> str:
+  """Identifies the trained policy (its checkpoint steps and their times): results of another policy are stale."""
+  ckpt = os.path.join(workdir, "policy", "checkpoints")
+  entries = sorted(os.listdir(ckpt)) if os.path.isdir(ckpt) else []
+  text = ";".join(f"{e}:{int(os.path.getmtime(os.path.join(ckpt, e)))}" for e in entries)
+  return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def _slot_video_fn(config, workdir):
+  """The SAVi slot-decomposition video maker (frames -> frames), for SAVi runs only."""
+  if config.encoder != "savi":
+    return None
+  from roboshape.eval import decomposition  # pylint: disable=import-outside-toplevel
+  helper = getattr(decomposition, "decomposition_video", None)
+  if helper is not None:
+    return lambda frames: helper(workdir, frames)
+  return videos.SaviSlotVideo(workdir)
+
+
+def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, str]:
+  """results.json, results.csv, table.md, table.tex and success_by_level.png from the rollout records."""
+  out_dir = os.path.join(workdir, "eval")
+  os.makedirs(out_dir, exist_ok=True)
+  levels = [l for l in LEVELS if l in tuple(config.eval.levels)]
+  records = sorted(records, key=lambda r: (levels.index(r["level"]) if r["level"] in levels else 99,
+                                           r["seed_index"], r["rollout"]))
+  summary = results_lib.summarize(records)
+  paths = dict(json=os.path.join(out_dir, "results.json"), csv=os.path.join(out_dir, "results.csv"),
+               md=os.path.join(out_dir, "table.md"), tex=os.path.join(out_dir, "table.tex"),
+               png=os.path.join(out_dir, "success_by_level.png"))
+  results_lib.write_json(paths["json"], dict(
+      task=config.task, encoder=config.encoder, levels=levels, num_seeds=config.eval.num_seeds,
+      rollouts_per_seed=config.eval.rollouts_per_seed,
+      seed_scheme=f"env seed = {config.eval.seed_offset} + seed_index * {SEED_STRIDE} + rollout",
+      summary=summary, rollouts=[{k: v for k, v in r.items()} for r in records]))
+  results_lib.write_csv(paths["csv"], records)
+  cells = tables.cells_from_summary(summary, config.task)
+  encoders = [config.encoder]
+  with open(paths["md"], "w") as f:
+    f.write(f"### {config.task}: success rate, {tables.encoder_name(config.encoder)}\n\n")
+    f.write(tables.render_markdown(cells, encoders, levels))
+    f.write("\n" + notes(summary, config.eval.num_seeds, config.eval.rollouts_per_seed) + "\n")
+  with open(paths["tex"], "w") as f:
+    f.write(tables.render_latex(
+        cells, encoders, levels=levels, label=f"tab:{config.task}_{config.encoder}",
+        caption=f"Success rate of \\textit{{{config.task}}} over the generalization scenarios "
+                f"(mean $\\pm$ std over {config.eval.num_seeds} seeds of {config.eval.rollouts_per_seed} rollouts)"))
+  plots.overall_bar_chart(summary, paths["png"], levels=levels,
+                          title=f"{config.task}: success rate per level")
+  return paths
+
+
+def notes(summary: Sequence[Dict], num_seeds: int, rollouts_per_seed: int) -> str:
+  """The lines under a table: what a cell is, and rollouts lost to worker crashes."""
+  lines = [f"Mean ± std (ddof=0) over {num_seeds} evaluation seed(s) of {rollouts_per_seed} rollouts each; "
+           "\"none\" = the training distribution."]
+  for r in summary:
+    if r["crashed"]:
+      lines.append(f"- {r['task']}/{tables.encoder_name(r['encoder'])}/{tables.level_name(r['level'])}: "
+                   f"{r['crashed']} rollout(s) lost to simulator worker crashes, left out.")
+  return "\n".join(lines)
+
+
+def run(config, workdir: str) -> None:
+  """The evaluate stage (see the module docstring): the trained policy of `workdir` in the sim bridge's pool."""
+  # pylint: disable=import-outside-toplevel
+  from roboshape.sim import EnvSpec, SimPool, SimWorkerError
+  from roboshape.train import bc
+  rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
+               config.eval.seed_offset)     # bad settings fail before the policy loads
+  policy = bc.load_policy(workdir)
+  make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
+  evaluate(config, workdir, policy, make_pool, SimWorkerError, policy_fingerprint(workdir))
+
+
+def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], worker_error=Exception,
+             fingerprint: str = "", slot_videos: bool = True) -> Dict[str, str]:
+  """Runs the rollouts not yet in <workdir>/eval/results.jsonl, then writes all outputs; returns their paths.
+
+  `make_pool(level)` returns a context manager giving a pool (see `run_rollouts`); `fingerprint` identifies the
+  policy, so a log of another policy is set aside rather than resumed.
+  """
+  plan = rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
+                      config.eval.seed_offset)
+  log = results_lib.ResultLog(os.path.join(workdir, "eval", "results.jsonl"), fingerprint)
+  video_dir = os.path.join(workdir, "eval", "videos")
+  slot_video = _slot_video_fn(config, workdir) if slot_videos else None
+
+  def on_done(r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
+    log.append(dict(task=config.task, encoder=config.encoder, level=r.level, seed_index=r.seed_index,
+                    rollout=r.rollout, seed=r.seed, **result))
+    if frames is not None:
+      stem = os.path.join(video_dir, f"{r.level}_s{r.seed}_{result['ended']}")
+      videos.write_video(frames, stem, fps=config.eval.video_fps)
+      if slot_video is not None:
+        try:
+          videos.write_video(slot_video(frames), stem + "_slots", fps=config.eval.video_fps, scale=2)
+        except UserError as e:   # e.g. no SAVi checkpoint: the rollout itself stands
+          tqdm.write(f"[roboshape] SAVi slot video of {stem} left out: {e}")
+
+  start = time.time()
+  for level in tuple(config.eval.levels):
+    planned = [r for r in plan if r.level == level]
+    todo = [r for r in planned if not log.done(r.level, r.seed)]
+    done = [rec for rec in log.records if rec["level"] == level and rec["ended"] != "worker_crash"]
+    if not todo:
+      print(f"[roboshape] evaluate {level}: all {len(planned)} rollouts already done", flush=True)
+      continue
+    with make_pool(level) as pool:
+      run_rollouts(pool, policy, todo, on_done, record=planned[:config.eval.videos_per_level],
+                   max_retries=config.eval.max_retries, worker_error=worker_error,
+                   desc=f"evaluate {config.task}/{config.encoder}/{level}",
+                   initial=(len(done), sum(bool(r["success"]) for r in done)))
+  keys = {(r.level, r.seed) for r in plan}
+  paths = write_outputs(config, workdir, [r for r in log.records if results_lib.key(r) in keys])
+  print(f"[roboshape] evaluation done in {time.time() - start:.0f}s: {os.path.abspath(paths['md'])}", flush=True)
+  with open(paths["md"]) as f:
+    print(f.read(), flush=True)
+  return paths

@@ -1,0 +1,121 @@
+"""The `report` stage: one table set for the runs of a grid (tasks x encoders), plus the overall figure.
+
+For a grid config (configs/reproduce.py) the runs are <workdir>/<task>_<encoder>/; for a single experiment, the
+workdir itself. Each run contributes its <run>/eval/results.json; a run that was skipped (a baseline whose
+weights are absent: <run>/SKIPPED.json written by the grid) or that has no results yet appears in the report as a
+"skipped: <reason>" line and as "-" cells, never as a crash.
+
+Outputs in <workdir>/report/: report.md (everything, with the commands' provenance), table_<task>.md and
+table_<task>.tex per task, overall.png (mean success per encoder and level across tasks, the paper's overall
+figure), summary.json and results.csv (every rollout of every run).
+"""
+import json
+import os
+from typing import Dict, List, Tuple
+
+from roboshape.eval import plots
+from roboshape.eval import results as results_lib
+from roboshape.eval import tables
+
+SKIPPED_FILE = "SKIPPED.json"
+
+
+def grid_runs(config, workdir: str) -> List[Tuple[str, str, str]]:
+  """(task, encoder, run workdir) of every run the config covers."""
+  if "grid" in config:
+    return [(t, e, os.path.join(workdir, f"{t}_{e}")) for t in config.grid.tasks for e in config.grid.encoders]
+  return [(config.task, config.encoder, workdir)]
+
+
+def load_run(task: str, encoder: str, run_dir: str) -> Dict:
+  """{summary, rollouts, levels} of a run's evaluation, or {skipped: reason} when there is none."""
+  skipped = os.path.join(run_dir, SKIPPED_FILE)
+  if os.path.exists(skipped):
+    with open(skipped) as f:
+      return dict(skipped=json.load(f).get("reason", "skipped"))
+  path = os.path.join(run_dir, "eval", "results.json")
+  if not os.path.exists(path):
+    return dict(skipped=f"no evaluation results ({path} is missing: run its evaluate stage)")
+  with open(path) as f:
+    data = json.load(f)
+  return dict(summary=[dict(r, task=task, encoder=encoder) for r in data["summary"]],
+              rollouts=data["rollouts"], levels=data.get("levels", list(tables.LEVELS)),
+              num_seeds=data.get("num_seeds"), rollouts_per_seed=data.get("rollouts_per_seed"))
+
+
+def build_report(config, workdir: str) -> Dict[str, str]:
+  """Writes the report files; returns {name: path}."""
+  runs = grid_runs(config, workdir)
+  out_dir = os.path.join(workdir, "report")
+  os.makedirs(out_dir, exist_ok=True)
+  loaded = {(t, e): load_run(t, e, d) for t, e, d in runs}
+  tasks = list(dict.fromkeys(t for t, _, _ in runs))
+  encoders = tables.sort_encoders(list(dict.fromkeys(e for _, e, _ in runs)))
+  levels = list(config.eval.levels) if "eval" in config else list(tables.LEVELS)
+  levels = [l for l in tables.LEVELS if l in levels]
+  summary = [row for r in loaded.values() if "summary" in r for row in r["summary"]]
+  rollouts = [row for r in loaded.values() if "rollouts" in r for row in r["rollouts"]]
+  sizes = {(r["num_seeds"], r["rollouts_per_seed"]) for r in loaded.values() if "summary" in r}
+
+  paths = {}
+  md = [f"# roboshape results: {', '.join(tasks)} x {', '.join(tables.encoder_name(e) for e in encoders)}", ""]
+  if sizes:
+    md.append("Cells: mean ± std (ddof=0) over evaluation seeds of the per-seed success rate; "
+              + "; ".join(f"{s} seed(s) x {r} rollouts" for s, r in sorted(sizes, key=str))
+              + ". \"none\" = the training distribution, L1 unseen distractor colours, L2 unseen background "
+              "colours, L3 novel distractor sizes.")
+    md.append("")
+  for task in tasks:
+    cells = tables.cells_from_summary(summary, task)
+    md_table = tables.render_markdown(cells, encoders, levels)
+    tex = tables.render_latex(cells, encoders, levels=levels, label=f"tab:{task}",
+                              caption=f"Success rate of \\textit{{{task}}} over the different generalization "
+                                      "scenarios")
+    paths[f"table_{task}.md"] = os.path.join(out_dir, f"table_{task}.md")
+    paths[f"table_{task}.tex"] = os.path.join(out_dir, f"table_{task}.tex")
+    with open(paths[f"table_{task}.md"], "w") as f:
+      f.write(md_table)
+    with open(paths[f"table_{task}.tex"], "w") as f:
+      f.write(tex)
+    md += [f"## {task}", "", md_table]
+    for encoder in encoders:
+      r = loaded.get((task, encoder))
+      if r is not None and "skipped" in r:
+        md.append(f"- skipped: {tables.encoder_name(encoder)} on {task}: {r['skipped']}")
+      elif r is not None:
+        crashed = sum(row["crashed"] for row in r["summary"])
+        if crashed:
+          md.append(f"- {tables.encoder_name(encoder)} on {task}: {crashed} rollout(s) lost to simulator worker "
+                    "crashes, left out of the rates.")
+    md.append("")
+  if summary:
+    paths["overall.png"] = plots.overall_bar_chart(summary, os.path.join(out_dir, "overall.png"), levels=levels)
+    md += ["## Overall", "", "![overall success rate](overall.png)", ""]
+    means = plots.overall_means(summary, levels)
+    md.append("| | " + " | ".join(tables.level_name(l) for l in levels) + " |")
+    md.append("| --- |" + " --- |" * len(levels))
+    for encoder, values in means.items():
+      md.append(f"| {tables.encoder_name(encoder)} | " + " | ".join(
+          "-" if v != v else f"{v:.2f}" for v in values) + " |")
+    md.append("")
+  else:
+    md += ["No run has evaluation results yet.", ""]
+  paths["summary.json"] = os.path.join(out_dir, "summary.json")
+  results_lib.write_json(paths["summary.json"], dict(
+      runs=[dict(task=t, encoder=e, workdir=d, **({"skipped": loaded[(t, e)]["skipped"]}
+                                                   if "skipped" in loaded[(t, e)] else {})) for t, e, d in runs],
+      summary=summary))
+  paths["results.csv"] = os.path.join(out_dir, "results.csv")
+  results_lib.write_csv(paths["results.csv"], rollouts)
+  paths["report.md"] = os.path.join(out_dir, "report.md")
+  with open(paths["report.md"], "w") as f:
+    f.write("\n".join(md))
+  return paths
+
+
+def run(config, workdir: str) -> None:
+  """The report stage: writes <workdir>/report/ and prints where it is."""
+  paths = build_report(config, workdir)
+  with open(paths["report.md"]) as f:
+    print(f.read(), flush=True)
+  print(f"[roboshape] report: {os.path.abspath(paths['report.md'])}", flush=True)

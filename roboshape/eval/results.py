@@ -1,0 +1,111 @@
+"""Rollout records: an append-only JSON-lines log that survives crashes, and the statistics the tables print.
+
+Every finished rollout is one line of <workdir>/eval/results.jsonl, flushed at once, so a killed evaluation keeps
+what it finished and a rerun skips it. A record:
+
+  {"task": "push", "encoder": "savi", "level": "L1", "seed_index": 0, "rollout": 7, "seed": 1000000007,
+   "success": true, "length": 83, "ended": "success", "policy": "<fingerprint>"}
+
+`ended` is "success" (the env's success check fired), "horizon" (the episode ran to its step limit) or
+"worker_crash" (the simulator worker died on this rollout more often than allowed: the rollout is reported and
+left out of the statistics). Success rates are computed per evaluation seed (over its rollouts), then
+mean +- std (population std, ddof=0) over seeds, as in the paper's tables.
+"""
+import csv
+import json
+import os
+from typing import Dict, Iterable, List, Sequence
+
+import numpy as np
+
+CSV_FIELDS = ("task", "encoder", "level", "seed_index", "rollout", "seed", "success", "length", "ended")
+
+
+def key(record: Dict) -> tuple:
+  """What identifies a rollout in a log: its level and env seed."""
+  return (record["level"], int(record["seed"]))
+
+
+class ResultLog:
+  """The JSON-lines log of one evaluation; records from another policy (`fingerprint`) are set aside."""
+
+  def __init__(self, path: str, fingerprint: str = ""):
+    self.path = path
+    self.fingerprint = fingerprint
+    self.records: List[Dict] = []
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    if os.path.exists(path):
+      self.records = _read_jsonl(path)
+      if any(r.get("policy", "") != fingerprint for r in self.records):
+        os.replace(path, path + ".stale")    # another policy's results: keep them aside, start afresh
+        self.records = []
+    self._done = {key(r) for r in self.records}
+
+  def done(self, level: str, seed: int) -> bool:
+    return (level, int(seed)) in self._done
+
+  def append(self, record: Dict) -> None:
+    record = dict(record, policy=self.fingerprint)
+    with open(self.path, "a") as f:
+      f.write(json.dumps(record) + "\n")
+      f.flush()
+      os.fsync(f.fileno())
+    self.records.append(record)
+    self._done.add(key(record))
+
+
+def _read_jsonl(path: str) -> List[Dict]:
+  records = []
+  with open(path) as f:
+    for line in f:
+      line = line.strip()
+      if not line:
+        continue
+      try:
+        records.append(json.loads(line))
+      except json.JSONDecodeError:
+        break           # a line cut by a crash mid-write: everything before it is whole
+  return records
+
+
+def summarize(records: Iterable[Dict]) -> List[Dict]:
+  """One row per (task, encoder, level): mean and std over seeds of the per-seed success rate.
+
+  Returns rows {task, encoder, level, mean, std, per_seed: [rate, ...], rollouts, successes, crashed,
+  mean_length}, ordered by task, encoder and level as first seen.
+  """
+  groups: Dict[tuple, Dict[int, List[Dict]]] = {}
+  for r in records:
+    groups.setdefault((r["task"], r["encoder"], r["level"]), {}).setdefault(int(r["seed_index"]), []).append(r)
+  rows = []
+  for (task, encoder, level), seeds in groups.items():
+    counted = {s: [r for r in rs if r["ended"] != "worker_crash"] for s, rs in sorted(seeds.items())}
+    per_seed = [float(np.mean([bool(r["success"]) for r in rs])) for rs in counted.values() if rs]
+    finished = [r for rs in counted.values() for r in rs]
+    rows.append(dict(
+        task=task, encoder=encoder, level=level,
+        mean=float(np.mean(per_seed)) if per_seed else None,
+        std=float(np.std(per_seed)) if per_seed else None,
+        per_seed=per_seed,
+        rollouts=len(finished),
+        successes=int(sum(bool(r["success"]) for r in finished)),
+        crashed=sum(len(rs) for rs in seeds.values()) - len(finished),
+        mean_length=float(np.mean([r["length"] for r in finished])) if finished else None))
+  return rows
+
+
+def write_json(path: str, payload: Dict) -> None:
+  tmp = path + ".tmp"
+  with open(tmp, "w") as f:
+    json.dump(payload, f, indent=1)
+  os.replace(tmp, path)
+
+
+def write_csv(path: str, records: Sequence[Dict]) -> None:
+  tmp = path + ".tmp"
+  with open(tmp, "w", newline="") as f:
+    writer = csv.DictWriter(f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+    writer.writeheader()
+    for r in records:
+      writer.writerow(r)
+  os.replace(tmp, path)

@@ -1,0 +1,94 @@
+"""Success-rate tables in the paper's layout, as Markdown and LaTeX.
+
+Rows are the generalization levels (the training distribution, printed "none" / "$\\emptyset$", then L1, L2, L3),
+columns the encoders; each cell is "mean +- std" over evaluation seeds with two decimals, and the best mean of a row
+is in bold (ties are all bold; a row whose best is 0.00 has no bold). A missing cell (an encoder that was skipped
+or not evaluated at that level) prints as "-".
+
+  cells = {("train", "savi"): (0.69, 0.06), ("L1", "savi"): (0.55, 0.02), ...}
+  print(render_markdown(cells, encoders=("dino", "r3m", "savi")))
+  print(render_latex(cells, encoders=("dino", "r3m", "savi"), caption="...", label="tab:push"))
+"""
+from typing import Dict, Mapping, Optional, Sequence, Tuple
+
+Cell = Optional[Tuple[float, float]]
+
+LEVELS = ("train", "L1", "L2", "L3")
+ENCODER_ORDER = ("dino", "r3m", "savi")     # the paper's column order
+_ENCODER_NAMES = {"savi": "SAVi", "r3m": "R3M", "dino": "DINO"}
+_ROW_NAMES_MD = {"train": "none"}
+_ROW_NAMES_TEX = {"train": r"$\emptyset$"}
+
+
+def encoder_name(encoder: str) -> str:
+  """The display name of an encoder ("savi" -> "SAVi"); unknown names are returned as they are."""
+  return _ENCODER_NAMES.get(encoder, encoder)
+
+
+def level_name(level: str) -> str:
+  """The display name of a level in Markdown and plots ("train" -> "none")."""
+  return _ROW_NAMES_MD.get(level, level)
+
+
+def sort_encoders(encoders: Sequence[str]) -> Tuple[str, ...]:
+  """Encoders in the paper's column order (DINO, R3M, SAVi), others after them in the given order."""
+  known = [e for e in ENCODER_ORDER if e in encoders]
+  return tuple(known + [e for e in encoders if e not in ENCODER_ORDER])
+
+
+def _best(cells: Mapping, level: str, encoders: Sequence[str]) -> set:
+  """Encoders whose mean, rounded as printed, is the row's best (empty when the best is 0.00)."""
+  means = {e: round(cells[(level, e)][0], 2) for e in encoders if cells.get((level, e)) is not None}
+  if not means:
+    return set()
+  top = max(means.values())
+  return {e for e, m in means.items() if m == top} if top > 0 else set()
+
+
+def _rows(cells, encoders, levels):
+  for level in levels:
+    best = _best(cells, level, encoders)
+    yield level, [(cells.get((level, e)), e in best) for e in encoders]
+
+
+def render_markdown(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[str],
+                    levels: Sequence[str] = LEVELS) -> str:
+  """A GitHub-Markdown table: header of encoders, one row per level, "**0.69** ± 0.06" cells."""
+  lines = ["| | " + " | ".join(encoder_name(e) for e in encoders) + " |",
+           "| --- |" + " --- |" * len(encoders)]
+  for level, row in _rows(cells, encoders, levels):
+    texts = []
+    for cell, bold in row:
+      if cell is None:
+        texts.append("-")
+      else:
+        mean = f"**{cell[0]:.2f}**" if bold else f"{cell[0]:.2f}"
+        texts.append(f"{mean} ± {cell[1]:.2f}")
+    lines.append(f"| {level_name(level)} | " + " | ".join(texts) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def render_latex(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[str], caption: str, label: str,
+                 levels: Sequence[str] = LEVELS) -> str:
+  """A LaTeX `table` float with the paper's `|c||c|c|c|` tabular, "\\textbf{0.69} $\\pm$ 0.06" cells."""
+  lines = [r"\begin{table}[h]", rf"\caption{{{caption}}}", rf"\label{{{label}}}", r"\begin{center}",
+           r"\begin{tabular}{|c||" + "c|" * len(encoders) + "}", r"\hline",
+           " & " + " & ".join(encoder_name(e) for e in encoders) + r" \\", r"\hline"]
+  for level, row in _rows(cells, encoders, levels):
+    texts = []
+    for cell, bold in row:
+      if cell is None:
+        texts.append("-")
+      else:
+        mean = rf"\textbf{{{cell[0]:.2f}}}" if bold else f"{cell[0]:.2f}"
+        texts.append(rf"{mean} $\pm$ {cell[1]:.2f}")
+    lines.append(_ROW_NAMES_TEX.get(level, level) + " & " + " & ".join(texts) + r" \\")
+    lines.append(r"\hline")
+  lines += [r"\end{tabular}", r"\end{center}", r"\end{table}"]
+  return "\n".join(lines) + "\n"
+
+
+def cells_from_summary(summary: Sequence[Dict], task: str) -> Dict[Tuple[str, str], Cell]:
+  """{(level, encoder): (mean, std)} of one task from summary rows ({task, encoder, level, mean, std, ...})."""
+  return {(r["level"], r["encoder"]): (r["mean"], r["std"]) for r in summary
+          if r["task"] == task and r.get("mean") is not None}

@@ -1,0 +1,44 @@
+"""A run workdir with randomly initialised SAVi and policy weights, for speed measurements and rollout tests.
+
+  untrained.write_run(config, workdir)        # config.encoder must be "savi"
+  policy = roboshape.train.bc.load_policy(workdir)
+
+Writes exactly what the pretrain and train_policy stages leave behind (config.json, savi/checkpoints,
+policy/checkpoints, policy/norm_stats.json with identity normalisation), so the real loading path, the real
+`Policy` and the SAVi slot videos run on it; only the weights are untrained. Speed does not depend on them.
+"""
+import json
+import os
+
+import jax
+import numpy as np
+
+from roboshape.cli import UserError
+
+
+def write_run(config, workdir: str, seed: int = 0) -> str:
+  """Writes the untrained SAVi + policy run of `config` into `workdir`; returns `workdir`."""
+  # pylint: disable=import-outside-toplevel
+  from roboshape import stages
+  from roboshape.models import policy as policy_lib
+  from roboshape.train import bc
+  from roboshape.train import pretrain
+  from roboshape.train.checkpoint import Checkpointer
+  if config.encoder != "savi":
+    raise UserError(f"untrained runs exist for SAVi only, not {config.encoder!r}.")
+  stages.save_config(config, workdir)
+  comp = pretrain.compiled(config)
+  r = config.env.resolution
+  # Jitted inits (one compilation each) are faster than op-by-op ones; a one-frame clip has the same params.
+  savi_state = jax.jit(lambda key: comp.init_state(key, (1, 1, r, r, 3)))(jax.random.key(seed))
+  with Checkpointer(os.path.join(pretrain.savi_dir(workdir), "checkpoints")) as ckpt:
+    ckpt.save(0, savi_state)
+  net = policy_lib.net_from_config(config.policy)
+  optimizer = bc.make_optimizer(config.policy.train)
+  state = jax.jit(lambda: bc.init_state(net, optimizer, (1, 1, comp.model.num_slots, comp.model.slot_size), seed))()
+  with Checkpointer(os.path.join(bc.policy_dir(workdir), "checkpoints")) as ckpt:
+    ckpt.save(0, state)
+  dim = config.policy.action_dim
+  with open(os.path.join(bc.policy_dir(workdir), "norm_stats.json"), "w") as f:
+    json.dump(dict(scale=np.ones(dim).tolist(), offset=np.zeros(dim).tolist()), f)
+  return workdir

@@ -1,0 +1,396 @@
+"""Tests of closed-loop evaluation, the tables, the report and the grid (roboshape/eval, roboshape/stages.py)."""
+import csv
+import json
+import os
+
+import ml_collections
+import numpy as np
+import pytest
+
+from configs import common
+from configs import reproduce
+from roboshape import stages
+from roboshape.eval import closed_loop
+from roboshape.eval import report
+from roboshape.eval import results as results_lib
+from roboshape.eval import tables
+
+HORIZON = 8
+
+
+def _outcome(seed: int):
+  """The fake env's script: even seeds succeed after 3 + seed % 4 steps, odd seeds run to the horizon."""
+  return (True, 3 + seed % 4) if seed % 2 == 0 else (False, HORIZON)
+
+
+class FakeWorkerError(Exception):
+  pass
+
+
+class FakePool:
+  """The sim bridge's closed-loop surface (contract A) with scripted episodes; can kill a 'worker' on a step."""
+
+  def __init__(self, num_envs=2, crash_on_steps=(), crash_forever_seed=None, size=8):
+    self.num_envs = num_envs
+    self.crash_on_steps = set(crash_on_steps)
+    self.crash_forever_seed = crash_forever_seed
+    self.size = size
+    self.steps = 0
+    self.restarts = 0
+    self.reset_seeds = []
+    self.dead = False
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    return False
+
+  def _frames(self):
+    img = np.zeros((len(self.seeds), self.size, self.size, 3), np.uint8)
+    for i, (s, t) in enumerate(zip(self.seeds, self.elapsed)):
+      img[i, ..., 0] = s % 251
+      img[i, ..., 1] = t
+    return img
+
+  def reset(self, seeds):
+    assert not self.dead, "reset on a dead pool without restart()"
+    assert 0 < len(seeds) <= self.num_envs
+    self.seeds = list(seeds)
+    self.reset_seeds += list(seeds)
+    self.elapsed = np.zeros(len(seeds), np.int32)
+    self.done = np.zeros(len(seeds), bool)
+    self.success = np.zeros(len(seeds), bool)
+    return self._frames()
+
+  def step(self, actions):
+    assert actions.shape == (len(self.seeds), 7) and actions.dtype == np.float32
+    assert np.all(np.abs(actions) <= 1.0)
+    self.steps += 1
+    if self.steps in self.crash_on_steps or (self.crash_forever_seed in self.seeds and self.elapsed.max() >= 2):
+      self.dead = True
+      raise FakeWorkerError("worker 1 died\nSegmentation fault")
+    for i, s in enumerate(self.seeds):
+      if self.done[i]:
+        continue
+      self.elapsed[i] += 1
+      ok, length = _outcome(s)
+      if self.elapsed[i] >= length:
+        self.done[i], self.success[i] = True, ok
+    return dict(image=self._frames(), segmentation=np.zeros(self._frames().shape[:3], np.uint8),
+                success=self.success.copy(), done=self.done.copy(), elapsed=self.elapsed.copy())
+
+  def restart(self):
+    self.restarts += 1
+    self.dead = False
+
+
+class FakePolicy:
+  """act_batch returns out-of-range actions (the loop must clip them); records the batch sizes it saw."""
+
+  def __init__(self, interrupt_after=None):
+    self.batch_sizes = set()
+    self.calls = 0
+    self.interrupt_after = interrupt_after
+
+  def reset(self, batch_size=1):
+    self.batch_size = batch_size
+
+  def reset_slots(self, indices):
+    assert max(indices) < self.batch_size
+
+  def act_batch(self, frames):
+    self.calls += 1
+    if self.interrupt_after is not None and self.calls > self.interrupt_after:
+      raise KeyboardInterrupt
+    self.batch_sizes.add(frames.shape[0])
+    return np.full((frames.shape[0], 7), 1.5, np.float32)
+
+
+def _config(levels=("train", "L1"), num_seeds=2, rollouts=3):
+  config = common.get_config("push", "savi", "tiny")
+  config.eval.levels = levels
+  config.eval.num_seeds = num_seeds
+  config.eval.rollouts_per_seed = rollouts
+  config.eval.seed_offset = 1000
+  config.eval.videos_per_level = 1
+  return config
+
+
+def _expected(config):
+  return {(r.level, r.seed): _outcome(r.seed) for r in closed_loop.rollout_plan(
+      config.eval.levels, config.eval.num_seeds, config.eval.rollouts_per_seed, config.eval.seed_offset)}
+
+
+# ----------------------------------------------------------------------------------------------- tables
+
+
+PUSH = {("train", "dino"): (0.0, 0.0), ("train", "r3m"): (0.88, 0.07), ("train", "savi"): (0.69, 0.06),
+        ("L1", "dino"): (0.0, 0.0), ("L1", "r3m"): (0.26, 0.06), ("L1", "savi"): (0.55, 0.02),
+        ("L2", "dino"): (0.0, 0.0), ("L2", "r3m"): (0.70, 0.01), ("L2", "savi"): (0.60, 0.04),
+        ("L3", "r3m"): (0.76, 0.01), ("L3", "savi"): (0.756, 0.08)}
+
+
+def test_markdown_table_exact():
+  expected = ("| | DINO | R3M | SAVi |\n"
+              "| --- | --- | --- | --- |\n"
+              "| none | 0.00 ± 0.00 | **0.88** ± 0.07 | 0.69 ± 0.06 |\n"
+              "| L1 | 0.00 ± 0.00 | 0.26 ± 0.06 | **0.55** ± 0.02 |\n"
+              "| L2 | 0.00 ± 0.00 | **0.70** ± 0.01 | 0.60 ± 0.04 |\n"
+              "| L3 | - | **0.76** ± 0.01 | **0.76** ± 0.08 |\n")
+  assert tables.render_markdown(PUSH, tables.sort_encoders(["savi", "r3m", "dino"])) == expected
+
+
+def test_latex_table_exact():
+  expected = "\n".join([
+      r"\begin{table}[h]",
+      r"\caption{Success rate of \textit{push}}",
+      r"\label{tab:push}",
+      r"\begin{center}",
+      r"\begin{tabular}{|c||c|c|c|}",
+      r"\hline",
+      r" & DINO & R3M & SAVi \\",
+      r"\hline",
+      r"$\emptyset$ & 0.00 $\pm$ 0.00 & \textbf{0.88} $\pm$ 0.07 & 0.69 $\pm$ 0.06 \\",
+      r"\hline",
+      r"L1 & 0.00 $\pm$ 0.00 & 0.26 $\pm$ 0.06 & \textbf{0.55} $\pm$ 0.02 \\",
+      r"\hline",
+      r"L2 & 0.00 $\pm$ 0.00 & \textbf{0.70} $\pm$ 0.01 & 0.60 $\pm$ 0.04 \\",
+      r"\hline",
+      r"L3 & - & \textbf{0.76} $\pm$ 0.01 & \textbf{0.76} $\pm$ 0.08 \\",
+      r"\hline",
+      r"\end{tabular}",
+      r"\end{center}",
+      r"\end{table}", ""])
+  assert tables.render_latex(PUSH, ("dino", "r3m", "savi"), caption=r"Success rate of \textit{push}",
+                             label="tab:push") == expected
+
+
+def test_all_zero_row_has_no_bold():
+  cells = {("train", "savi"): (0.0, 0.0), ("train", "r3m"): (0.001, 0.0)}
+  assert "**" not in tables.render_markdown(cells, ("r3m", "savi"), levels=("train",))
+
+
+def test_summary_mean_std_over_seeds_and_crashes_left_out():
+  recs = [dict(task="push", encoder="savi", level="L1", seed_index=s, rollout=r, seed=0, success=ok, length=5,
+               ended="success" if ok else "horizon")
+          for s, oks in enumerate([(1, 1, 0, 0), (1, 0, 0, 0)]) for r, ok in enumerate(oks)]
+  recs.append(dict(recs[0], rollout=9, success=False, ended="worker_crash", length=0))
+  (row,) = results_lib.summarize(recs)
+  assert row["per_seed"] == [0.5, 0.25]
+  assert row["mean"] == pytest.approx(0.375) and row["std"] == pytest.approx(0.125)
+  assert (row["rollouts"], row["successes"], row["crashed"]) == (8, 3, 1)
+
+
+# ------------------------------------------------------------------------------------------ closed loop
+
+
+def test_seed_plan_disjoint_and_stable():
+  plan = closed_loop.rollout_plan(("train", "L3"), 3, 100)
+  seeds = [r.seed for r in plan if r.level == "train"]
+  assert len(set(seeds)) == 300 and min(seeds) >= 10**9
+  assert seeds == [r.seed for r in plan if r.level == "L3"]     # levels share layouts
+  assert plan[101] == closed_loop.Rollout("train", 1, 1, 10**9 + 100_001)
+
+
+def test_rollouts_crash_restart_keeps_finished():
+  config = _config(levels=("L2",), num_seeds=1, rollouts=5)
+  plan = closed_loop.rollout_plan(config.eval.levels, 1, 5, config.eval.seed_offset)
+  pool, policy, got = FakePool(num_envs=2, crash_on_steps={4}), FakePolicy(), []
+  closed_loop.run_rollouts(pool, policy, plan, lambda r, res, fr: got.append((r, res)),
+                           worker_error=FakeWorkerError)
+  # Wave 1 = seeds 1000 (success at step 3) and 1001 (horizon 8); the crash at step 4 kills 1001 in flight.
+  assert pool.restarts == 1
+  assert [r.seed for r, _ in got].count(1000) == 1                   # finished before the crash: kept, not re-run
+  assert sorted(r.seed for r, _ in got) == [1000, 1001, 1002, 1003, 1004]
+  assert pool.reset_seeds == [1000, 1001, 1001, 1002, 1003, 1004]   # only the in-flight rollout re-runs, alone
+  for r, res in got:
+    ok, length = _outcome(r.seed)
+    assert res == dict(success=ok, length=length, ended="success" if ok else "horizon")
+  assert policy.batch_sizes == {2}                                   # the short last wave is padded
+
+
+def test_persistent_crash_reported_not_counted(tmp_path):
+  config = _config(levels=("train",), num_seeds=1, rollouts=4)
+  config.eval.max_retries = 1
+  pool = FakePool(num_envs=2, crash_forever_seed=1001)
+  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pool, FakeWorkerError,
+                       slot_videos=False)
+  data = json.load(open(tmp_path / "eval" / "results.json"))
+  ended = {r["seed"]: r["ended"] for r in data["rollouts"]}
+  assert ended == {1000: "success", 1001: "worker_crash", 1002: "success", 1003: "horizon"}
+  (row,) = data["summary"]
+  assert (row["rollouts"], row["crashed"], row["mean"]) == (3, 1, pytest.approx(2 / 3))
+  assert "1 rollout(s) lost to simulator worker crashes" in open(tmp_path / "eval" / "table.md").read()
+
+
+def test_evaluate_resumes_after_interrupt(tmp_path):
+  config = _config()
+  expected = _expected(config)
+  with pytest.raises(KeyboardInterrupt):
+    closed_loop.evaluate(config, str(tmp_path), FakePolicy(interrupt_after=12), lambda level: FakePool(),
+                         slot_videos=False)
+  kept = results_lib.ResultLog(str(tmp_path / "eval" / "results.jsonl")).records
+  assert 0 < len(kept) < len(expected)
+  pools = {}
+  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pools.setdefault(level, FakePool()),
+                       slot_videos=False)
+  rerun = {(level, s) for level, p in pools.items() for s in p.reset_seeds}
+  assert rerun and not rerun & {results_lib.key(r) for r in kept}      # finished rollouts are not re-run
+  assert len(rerun) + len(kept) == len(expected)
+  data = json.load(open(tmp_path / "eval" / "results.json"))
+  assert {(r["level"], r["seed"]): (r["success"], r["length"]) for r in data["rollouts"]} == expected
+  # A log of another policy is set aside, not resumed.
+  log = results_lib.ResultLog(str(tmp_path / "eval" / "results.jsonl"), fingerprint="other")
+  assert log.records == [] and os.path.exists(tmp_path / "eval" / "results.jsonl.stale")
+
+
+def _real_sim():
+  try:
+    from roboshape import sim  # pylint: disable=import-outside-toplevel
+    return sim if hasattr(sim, "SimPool") else None
+  except ImportError:
+    return None
+
+
+class CrashOnce:
+  """Wraps a real SimPool: kills its worker 0 (the bridge's test hook) just before the `at_step`-th step."""
+
+  def __init__(self, pool, at_step):
+    self.pool, self.at_step, self.steps = pool, at_step, 0
+    self.num_envs = pool.num_envs
+    self.restarts = 0
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.pool.close()
+
+  def reset(self, seeds):
+    return self.pool.reset(seeds)
+
+  def step(self, actions):
+    self.steps += 1
+    if self.steps == self.at_step:
+      self.pool._crash_worker(0, "injected by test_eval")  # pylint: disable=protected-access
+    return self.pool.step(actions)
+
+  def restart(self):
+    self.restarts += 1
+    self.pool.restart()
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+  """An evaluation of level L1, 2 seeds x 2 rollouts of 8-step episodes in 2 envs, a worker killed mid-wave.
+
+  Runs through the real sim workers (roboshape.sim) when they exist, else the fake pool. The policy is the
+  scripted FakePolicy: the rollout machinery, not the policy, is under test here.
+  """
+  workdir = str(tmp_path_factory.mktemp("eval_run"))
+  config = _config(levels=("L1",), num_seeds=2, rollouts=2)
+  config.eval.seed_offset = 10**9
+  config.sim.num_workers = 2
+  config.env.max_episode_steps = HORIZON
+  sim = _real_sim()
+  pools = []
+  def make_pool(level):
+    if sim is None:
+      pool = FakePool(size=64, crash_on_steps={3})
+    else:
+      pool = sim.SimPool(sim.EnvSpec.from_config(config, level=level), num_workers=2)
+      pool = CrashOnce(pool, at_step=3)
+    pools.append(pool)
+    return pool
+  paths = closed_loop.evaluate(config, workdir, FakePolicy(), make_pool,
+                               sim.SimWorkerError if sim else FakeWorkerError, slot_videos=False)
+  return config, workdir, paths, pools, sim is not None
+
+
+def test_evaluate_writes_all_outputs(evaluated):
+  config, workdir, paths, _, real = evaluated
+  for p in paths.values():
+    assert os.path.getsize(p) > 0, p
+  data = json.load(open(paths["json"]))
+  assert len(data["rollouts"]) == 4
+  assert [r["level"] for r in data["summary"]] == ["L1"]
+  assert all(r["ended"] in ("success", "horizon") and 0 < r["length"] <= HORIZON for r in data["rollouts"])
+  if not real:
+    assert {(r["level"], r["seed"]): (r["success"], r["length"]) for r in data["rollouts"]} == _expected(config)
+  with open(paths["csv"]) as f:
+    rows = list(csv.DictReader(f))
+  assert len(rows) == 4 and rows[0]["task"] == "push" and rows[0]["encoder"] == "savi"
+  md = open(paths["md"]).read()
+  assert "| | SAVi |" in md and "| L1 |" in md
+  assert r"\begin{tabular}{|c||c|}" in open(paths["tex"]).read()
+  with open(paths["png"], "rb") as f:
+    assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+  vids = sorted(os.listdir(os.path.join(workdir, "eval", "videos")))
+  assert [v.split("_")[0] for v in vids if v.endswith(".mp4")] == ["L1"]
+  assert len([v for v in vids if v.endswith(".gif")]) == 1
+  import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
+  first = [v for v in vids if v.endswith(".mp4")][0]
+  rollout = [r for r in data["rollouts"] if r["seed_index"] == 0 and r["rollout"] == 0][0]
+  mp4 = imageio.mimread(os.path.join(workdir, "eval", "videos", first), memtest=False)
+  assert len(mp4) == rollout["length"] + 1 and mp4[0].shape[:2] == (256, 256)   # every frame, upscaled 4x
+
+
+def test_worker_killed_mid_evaluation_is_restarted(evaluated):
+  _, workdir, _, pools, _ = evaluated
+  assert len(pools) == 1 and pools[0].restarts == 1
+  log = results_lib.ResultLog(os.path.join(workdir, "eval", "results.jsonl")).records
+  # Every planned rollout is in the log exactly once, none lost to the crash.
+  assert sorted(results_lib.key(r) for r in log) == [("L1", 10**9 + s * 100_000 + r) for s in range(2) for r in range(2)]
+  assert all(r["ended"] != "worker_crash" for r in log)
+
+
+# --------------------------------------------------------------------------------------- report and grid
+
+
+def test_grid_configs_and_report_with_skipped_baseline(tmp_path, evaluated):
+  _, run_dir, _, _, _ = evaluated
+  config = reproduce.get_config("tiny")
+  config.grid.encoders = ("savi", "r3m")
+  runs = list(stages.grid_configs(config, str(tmp_path)))
+  assert [(t, e) for t, e, _, _ in runs] == [("push", "savi"), ("push", "r3m")]
+  for task, encoder, sub, sub_dir in runs:
+    assert "grid" not in sub and sub.encoder == encoder and sub.name == f"{task}_{encoder}"
+    assert sub.data.dir == os.path.join(str(tmp_path), "data", "push")
+    assert sub_dir == os.path.join(str(tmp_path), f"push_{encoder}")
+    assert "report" not in sub.stages and ("pretrain" in sub.stages) == (encoder == "savi")
+  # The savi run has results; the r3m run was skipped by the grid for absent weights.
+  os.makedirs(tmp_path / "push_savi" / "eval")
+  with open(os.path.join(run_dir, "eval", "results.json")) as f:
+    data = f.read()
+  (tmp_path / "push_savi" / "eval" / "results.json").write_text(data)
+  os.makedirs(tmp_path / "push_r3m")
+  (tmp_path / "push_r3m" / "SKIPPED.json").write_text(json.dumps({"reason": "R3M weights not found"}))
+  paths = report.build_report(config, str(tmp_path))
+  md = open(paths["report.md"]).read()
+  assert "- skipped: R3M on push: R3M weights not found" in md
+  assert "| | R3M | SAVi |" in md and "| none | - |" in md
+  assert os.path.getsize(paths["overall.png"]) > 0 and os.path.getsize(paths["table_push.tex"]) > 0
+
+
+def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
+  config = reproduce.get_config("tiny")
+  config.grid.encoders = ("savi", "dino")
+  config.stages = ("train_policy", "report")
+  calls = []
+
+  class Stage:
+    @staticmethod
+    def run(cfg, workdir):
+      calls.append((cfg.encoder, workdir))
+      if cfg.encoder == "dino":
+        raise stages.UserError("DINO weights not found: set --config.baselines.dino.path")
+
+  monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
+  monkeypatch.setattr(stages.importlib, "import_module",
+                      lambda name: Stage if name == "fake_train_policy" else report)
+  stages.run(config, str(tmp_path))
+  assert [e for e, _ in calls] == ["savi", "dino"]
+  md = open(tmp_path / "report" / "report.md").read()
+  assert "- skipped: DINO on push: DINO weights not found" in md
+  assert "- skipped: SAVi on push: no evaluation results" in md
