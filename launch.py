@@ -9,6 +9,7 @@ import sys
 
 from absl import app
 from absl import flags
+from absl import logging
 from ml_collections import config_flags
 
 from roboshape import cli
@@ -22,6 +23,7 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
   from roboshape import stages  # pylint: disable=import-outside-toplevel
+  logging.set_verbosity(logging.WARNING)  # orbax logs every save at INFO; progress bars say what runs
   config = _CONFIG.value
   workdir = _WORKDIR.value or f"runs/{config.name}"
   stages.run(config, workdir)

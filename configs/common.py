@@ -7,6 +7,9 @@ the command line as `--config=configs/pick_savi.py:tiny`. Variants:
   small: a scale that trains and evaluates on a 2-core CPU in hours (200 demos per task).
   tiny:  a handful of episodes and steps, for tests and `make demo`.
 
+A `_chunk` suffix (`:small_chunk`, `:paper_chunk`, `:tiny_chunk`) turns on action chunking in the policy: it
+predicts the next 8 actions and ensembles them over time at control time (off in the paper).
+
 Every field can be overridden on the command line, e.g. `--config.policy.train.steps=100`.
 Each section below belongs to one part of the code base (named in its function's docstring).
 """
@@ -15,6 +18,7 @@ import ml_collections
 TASKS = ("push", "pick", "place")
 ENCODERS = ("savi", "dino", "r3m")
 VARIANTS = ("paper", "small", "tiny")
+MODIFIERS = {"chunk": 8}   # variant suffix -> policy.chunk
 LEVELS = ("train", "L1", "L2", "L3")
 STAGES = ("collect", "pretrain", "cache", "train_policy", "evaluate", "report")
 
@@ -27,7 +31,7 @@ def env_config(variant: str) -> ml_collections.ConfigDict:
   """The RoboShape world (roboshape/envs): what each reset randomises and what the camera sees."""
   del variant
   return ml_collections.ConfigDict(dict(
-      resolution=64,            # square RGB camera in front of the robot, pixels per side
+      resolution=64,            # square RGB camera in front of the robot, pixels per side (16..512)
       min_distractors=1,
       max_distractors=4,
       max_episode_steps=0,      # 0: the task's own horizon (>= 1.5x the expert's 95th percentile)
@@ -40,13 +44,19 @@ def sim_config(variant: str) -> ml_collections.ConfigDict:
   del variant
   return ml_collections.ConfigDict(dict(
       num_workers=0,            # 0: one worker per CPU core
+      step_timeout=120.0,       # seconds a worker may take for one reset / step before it is killed
+      episode_timeout=600.0,    # seconds a worker may take for one expert episode (collection)
   ))
 
 
 def data_config(variant: str) -> ml_collections.ConfigDict:
-  """The RoboShape dataset (roboshape/data): expert demos in RLDS/TFDS."""
+  """The RoboShape dataset (roboshape/data): expert demos in RLDS/TFDS, at <dir>/roboshape_<task>/1.0.0.
+
+  Only successful expert episodes are kept: train takes the first `train_episodes` successes among seeds 0, 1, ...,
+  val the first max(min_val_episodes, round(val_fraction * train_episodes)) among seeds 1000000, 1000001, ...
+  """
   return ml_collections.ConfigDict(dict(
-      dir="",                   # "": <workdir>/data; set it to share one dataset between experiments
+      dir="",                   # "": <workdir>/data; set it to share one dataset per task between experiments
       train_episodes=_pick(variant, 2000, 200, 4),
       val_fraction=0.05,        # validation episodes, from seeds disjoint from the training ones
       min_val_episodes=1,
@@ -54,14 +64,54 @@ def data_config(variant: str) -> ml_collections.ConfigDict:
 
 
 def savi_config(variant: str) -> ml_collections.ConfigDict:
-  """SAVi, the object-centric video encoder (roboshape/models/savi.py, roboshape/train/pretrain.py)."""
+  """SAVi, the object-centric video encoder (roboshape/models/savi.py, roboshape/train/pretrain.py).
+
+  paper: SAVi-S on 64x64 (five 32-channel 5x5 convs at full resolution, slot size 128, 8x8 broadcast grid and four
+  64-channel transposed convs). small: the same design made cheap enough for a 2-core CPU (the first conv has
+  stride 2; the decoder has three 3x3 transposed convs of 32, 32, 16 channels, as it runs once per slot).
+  tiny: a toy model for tests and `make demo`.
+  """
+  paper = variant == "paper"
   return ml_collections.ConfigDict(dict(
-      num_slots=11,
-      slot_size=128,
+      num_slots=11,             # robot, cube, target/bin, up to 4 distractors, table, backdrop, spares
+      slot_size=_pick(variant, 128, 128, 32),
+      num_iterations=2,         # slot-attention iterations per frame
+      slot_mlp_size=_pick(variant, 256, 256, 64),
+      encoder=ml_collections.ConfigDict(dict(
+          features=(32, 32, 32, 32, 32) if variant != "tiny" else (16, 16, 16, 16, 16),
+          kernel_size=5,
+          strides=(1, 1, 1, 1, 1) if paper else (2, 1, 1, 1, 1),
+          mlp_size=_pick(variant, 64, 64, 32),
+          output_size=_pick(variant, 64, 64, 32),
+      )),
+      predictor=ml_collections.ConfigDict(dict(
+          num_heads=4,
+          mlp_size=_pick(variant, 256, 256, 64),
+      )),
+      decoder=ml_collections.ConfigDict(dict(
+          grid_size=0,            # broadcast grid side; 0: env.resolution / prod(strides), i.e. 8x8 at 64x64
+          features=(64, 64, 64, 64) if paper else ((32, 32, 16) if variant == "small" else (16, 16, 16)),
+          kernel_size=5 if paper else 3,
+          strides=(2, 2, 2, 1) if paper else (2, 2, 2),
+          upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
+      )),
       train=ml_collections.ConfigDict(dict(
           steps=_pick(variant, 100_000, 3000, 20),
           batch_size=_pick(variant, 64, 8, 2),
           clip_length=6,
+          learning_rate=_pick(variant, 2e-4, 4e-4, 1e-3),
+          warmup_steps=_pick(variant, 2500, 200, 2),
+          clip_norm=0.05,         # global gradient norm
+          checkpoint_every=_pick(variant, 1000, 250, 10),
+          keep_checkpoints=3,
+          log_every=_pick(variant, 50, 10, 1),
+      )),
+      eval=ml_collections.ConfigDict(dict(
+          every=_pick(variant, 5000, 250, 20),     # steps between evaluations (and after the last step)
+          episodes=_pick(variant, 32, 8, 1),       # validation episodes
+          frames=_pick(variant, 24, 24, 6),        # first frames of each episode, encoded recurrently
+          background_ids=(0, 1),                   # segmentation ids FG-ARI and mIoU ignore: backdrop and table
+          figure_frames=4,
       )),
   ))
 
@@ -70,18 +120,56 @@ def baseline_config(variant: str) -> ml_collections.ConfigDict:
   """Frozen global encoders loaded from official checkpoints (roboshape/baselines)."""
   del variant
   return ml_collections.ConfigDict(dict(
-      r3m=ml_collections.ConfigDict(dict(arch="resnet50", path="")),
-      dino=ml_collections.ConfigDict(dict(arch="vits16", path="")),
+      r3m=ml_collections.ConfigDict(dict(
+          arch="resnet50",          # resnet18 | resnet34 | resnet50
+          path="",                  # "": ~/.r3m/r3m_{18,34,50}/model.pt, where the R3M package caches it
+          input_size=224,           # side frames are resized to before the network (0: the frames' own size)
+      )),
+      dino=ml_collections.ConfigDict(dict(
+          arch="vits16",            # vits16 | vitb16
+          path="",                  # "": ~/.cache/torch/hub/checkpoints/dino_{deitsmall,vitbase}16_pretrain.pth
+          input_size=224,           # 0: the frames' own size, with resized position embeddings
+          patch_tokens=False,       # True: the patch tokens follow the CLS token
+      )),
   ))
 
 
 def policy_config(variant: str) -> ml_collections.ConfigDict:
-  """The transformer policy with a GMM head, trained by behaviour cloning (roboshape/models, roboshape/train/bc.py)."""
+  """The transformer policy with a GMM head, trained by behaviour cloning (roboshape/models, roboshape/train/bc.py).
+
+  Action chunking (predict the next `chunk` actions, temporal ensembling at control time) is off by default as in
+  the paper; turn it on with `--config.policy.chunk=8`.
+  """
   return ml_collections.ConfigDict(dict(
-      history=10,
+      history=10,               # H: frames the trunk sees in training (and the number of time embeddings)
+      width=_pick(variant, 256, 128, 32),
+      num_layers=_pick(variant, 8, 4, 1),
+      num_heads=_pick(variant, 4, 4, 2),
+      mlp_ratio=4,
+      dropout=0.1,
+      action_dim=7,
+      num_modes=5,              # GMM modes
+      min_scale=1e-4,           # floor on the GMM's softplus scales
+      chunk=1,                  # C: future actions predicted per step (1: no chunking)
+      cache_dtype="float32",    # dtype of the cached encoder features ("float16" halves the cache)
       train=ml_collections.ConfigDict(dict(
           steps=_pick(variant, 100_000, 5000, 20),
           batch_size=_pick(variant, 256, 64, 4),
+          learning_rate=1e-4,
+          weight_decay=1e-4,
+          warmup_steps=_pick(variant, 2000, 200, 2),
+          grad_clip=1.0,
+          log_every=_pick(variant, 100, 50, 5),
+          eval_every=_pick(variant, 2000, 500, 10),
+          checkpoint_every=_pick(variant, 5000, 500, 10),
+          val_batch_size=_pick(variant, 256, 128, 16),
+          max_val_samples=_pick(variant, 20_000, 5000, 1000),   # action targets scored per validation pass
+      )),
+      eval=ml_collections.ConfigDict(dict(
+          history=0,              # frames seen at control time; 0: the training history
+          action="mean",          # "mean": mixture mean; "sample": a mode drawn by weight, low-noise around it
+          noise=0.1,              # for action="sample": the fraction of the mode's scale added as noise
+          ensemble_decay=0.01,    # temporal ensembling weights exp(-k * i) with chunk > 1
       )),
   ))
 
@@ -92,31 +180,40 @@ def eval_config(variant: str) -> ml_collections.ConfigDict:
       levels=LEVELS,
       rollouts_per_seed=_pick(variant, 100, 20, 2),
       num_seeds=_pick(variant, 3, 3, 1),
+      seed_offset=1_000_000_000,  # env seed = seed_offset + seed_index * 100_000 + rollout (disjoint from demos)
+      max_retries=2,            # re-runs of a rollout whose simulator worker died, before it is reported
+      videos_per_level=_pick(variant, 3, 3, 1),
+      video_fps=20,
   ))
 
 
 def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collections.ConfigDict:
   """The full config of one experiment: `task` x `encoder` at the scale `variant`."""
   variant = variant or "paper"
+  scale, _, modifier = variant.partition("_")
   if task not in TASKS:
     raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}.")
   if encoder not in ENCODERS:
     raise ValueError(f"unknown encoder {encoder!r}; choose one of {', '.join(ENCODERS)}.")
-  if variant not in VARIANTS:
-    raise ValueError(f"unknown variant {variant!r}; use configs/<exp>.py:<variant> with one of {', '.join(VARIANTS)}.")
+  if scale not in VARIANTS or (modifier and modifier not in MODIFIERS):
+    raise ValueError(f"unknown variant {variant!r}; use configs/<exp>.py:<variant> with one of {', '.join(VARIANTS)}"
+                     f", optionally suffixed with {', '.join('_' + m for m in MODIFIERS)}.")
   stages = STAGES if encoder == "savi" else tuple(s for s in STAGES if s != "pretrain")
-  return ml_collections.ConfigDict(dict(
+  config = ml_collections.ConfigDict(dict(
       name=f"{task}_{encoder}",
       task=task,
       encoder=encoder,
       variant=variant,
       seed=0,
       stages=stages,
-      env=env_config(variant),
-      sim=sim_config(variant),
-      data=data_config(variant),
-      savi=savi_config(variant),
-      baselines=baseline_config(variant),
-      policy=policy_config(variant),
-      eval=eval_config(variant),
+      env=env_config(scale),
+      sim=sim_config(scale),
+      data=data_config(scale),
+      savi=savi_config(scale),
+      baselines=baseline_config(scale),
+      policy=policy_config(scale),
+      eval=eval_config(scale),
   ))
+  if modifier:
+    config.policy.chunk = MODIFIERS[modifier]
+  return config

@@ -67,3 +67,12 @@ def test_every_experiment_config_loads():
         exec(compile(f.read(), path, "exec"), namespace)  # pylint: disable=exec-used
       config = namespace["get_config"]("tiny")
       assert (config.task, config.encoder) == (task, encoder)
+
+
+def test_chunk_variant_turns_on_action_chunking():
+  assert common.get_config("pick", "savi", "small").policy.chunk == 1
+  chunked = common.get_config("pick", "savi", "small_chunk")
+  assert chunked.policy.chunk == 8
+  assert chunked.data.train_episodes == common.get_config("pick", "savi", "small").data.train_episodes
+  with pytest.raises(ValueError, match="unknown variant 'small_fast'"):
+    common.get_config("pick", "savi", "small_fast")
