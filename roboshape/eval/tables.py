@@ -51,19 +51,25 @@ def _rows(cells, encoders, levels):
     yield level, [(cells.get((level, e)), e in best) for e in encoders]
 
 
+def _cell_texts(row, bold_format: str, cell_format: str) -> list:
+  """Formats one table row's cells: "-" for a missing cell, else `cell_format` of (mean, std), the best in bold."""
+  texts = []
+  for cell, bold in row:
+    if cell is None:
+      texts.append("-")
+    else:
+      mean = f"{cell[0]:.2f}"
+      texts.append(cell_format.format(bold_format.format(mean) if bold else mean, cell[1]))
+  return texts
+
+
 def render_markdown(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[str],
                     levels: Sequence[str] = LEVELS) -> str:
   """A GitHub-Markdown table: header of encoders, one row per level, "**0.69** ± 0.06" cells."""
   lines = ["| | " + " | ".join(encoder_name(e) for e in encoders) + " |",
            "| --- |" + " --- |" * len(encoders)]
   for level, row in _rows(cells, encoders, levels):
-    texts = []
-    for cell, bold in row:
-      if cell is None:
-        texts.append("-")
-      else:
-        mean = f"**{cell[0]:.2f}**" if bold else f"{cell[0]:.2f}"
-        texts.append(f"{mean} ± {cell[1]:.2f}")
+    texts = _cell_texts(row, "**{}**", "{} ± {:.2f}")
     lines.append(f"| {level_name(level)} | " + " | ".join(texts) + " |")
   return "\n".join(lines) + "\n"
 
@@ -75,13 +81,7 @@ def render_latex(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[str],
            r"\begin{tabular}{|c||" + "c|" * len(encoders) + "}", r"\hline",
            " & " + " & ".join(encoder_name(e) for e in encoders) + r" \\", r"\hline"]
   for level, row in _rows(cells, encoders, levels):
-    texts = []
-    for cell, bold in row:
-      if cell is None:
-        texts.append("-")
-      else:
-        mean = rf"\textbf{{{cell[0]:.2f}}}" if bold else f"{cell[0]:.2f}"
-        texts.append(rf"{mean} $\pm$ {cell[1]:.2f}")
+    texts = _cell_texts(row, r"\textbf{{{}}}", r"{} $\pm$ {:.2f}")
     lines.append(_ROW_NAMES_TEX.get(level, level) + " & " + " & ".join(texts) + r" \\")
     lines.append(r"\hline")
   lines += [r"\end{tabular}", r"\end{center}", r"\end{table}"]
