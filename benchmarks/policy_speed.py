@@ -27,6 +27,7 @@ import jax  # pylint: disable=wrong-import-position
 import jax.numpy as jnp  # pylint: disable=wrong-import-position
 import numpy as np  # pylint: disable=wrong-import-position
 
+import flops  # pylint: disable=wrong-import-position  (benchmarks/flops.py)
 from configs import common  # pylint: disable=wrong-import-position
 from roboshape.models import policy as policy_lib  # pylint: disable=wrong-import-position
 from roboshape.models.encoder import FrozenEncoder  # pylint: disable=wrong-import-position
@@ -50,26 +51,6 @@ def synthetic_episodes(n: int, steps: int, res: int):
   rng = np.random.default_rng(0)
   return [dict(seed=i, success=True, image=rng.integers(0, 256, (steps + 1, res, res, 3), dtype=np.uint8),
                action=rng.uniform(-1, 1, (steps, 7)).astype(np.float32)) for i in range(n)]
-
-
-def matmul_flops_per_s(n: int = 2048, reps: int = 10) -> float:
-  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
-  matmul = jax.jit(jnp.dot)
-  matmul(a, b).block_until_ready()
-  best = float("inf")
-  for _ in range(reps):
-    start = time.perf_counter()
-    matmul(a, b).block_until_ready()
-    best = min(best, time.perf_counter() - start)
-  return 2.0 * n ** 3 / best
-
-
-def _flops(compiled) -> float:
-  cost = compiled.cost_analysis()
-  if isinstance(cost, (list, tuple)):
-    cost = cost[0]
-  return float(cost["flops"])
 
 
 def bc_epochs(config, encoder, episodes, feature_dir, batch_size, reencode_steps):
@@ -153,7 +134,7 @@ def act_latency(config, encoder, reps: int):
     policy.act(f)
     times.append(time.perf_counter() - start)
   compiled = policy._step.lower(policy.params, encoder.params, policy.carry, jnp.asarray(frames[:1])).compile()  # pylint: disable=protected-access
-  return float(np.median(times)), _flops(compiled), policy.num_traces
+  return float(np.median(times)), flops.compiled_flops(compiled), policy.num_traces
 
 
 def env_step_time(task: str, reps: int):
@@ -212,7 +193,7 @@ def main():
     print(f"  {what + ':':<41}{epochs[kind]:8.2f} s -> cached is {ratio:.1f}x faster "
           f"(bar >= 5x: {'PASS' if ratio >= 5 else 'FAIL'})", flush=True)
   act_s, act_flops, traces = act_latency(config, encoder, args.act_reps)
-  peak = matmul_flops_per_s()
+  peak = flops.matmul_flops_per_s()
   print(f"policy.act (batch 1, 64x64, SAVi + trunk): median {1e3 * act_s:.1f} ms over {args.act_reps} calls, "
         f"{traces} compilation(s); {act_flops / 1e9:.3f} GFLOP per act -> {act_flops / act_s / 1e9:.1f} GFLOP/s "
         f"vs dense matmul {peak / 1e9:.1f} GFLOP/s ({100 * act_flops / act_s / peak:.1f}% of it)", flush=True)

@@ -16,29 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import flops  # pylint: disable=wrong-import-position  (benchmarks/flops.py)
 from configs import common  # pylint: disable=wrong-import-position
 from roboshape.train import pretrain  # pylint: disable=wrong-import-position
-
-
-def _flops(compiled) -> float:
-  cost = compiled.cost_analysis()
-  if isinstance(cost, (list, tuple)):
-    cost = cost[0]
-  return float(cost["flops"])
-
-
-def matmul_flops_per_s(n: int = 2048, reps: int = 10) -> float:
-  """Dense float32 [n, n] x [n, n] FLOP/s, best of `reps`."""
-  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
-  matmul = jax.jit(jnp.dot)
-  matmul(a, b).block_until_ready()
-  best = float("inf")
-  for _ in range(reps):
-    start = time.perf_counter()
-    matmul(a, b).block_until_ready()
-    best = min(best, time.perf_counter() - start)
-  return 2.0 * n ** 3 / best
 
 
 def main():
@@ -63,7 +43,7 @@ def main():
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, key).compile()
   compile_s = time.perf_counter() - start
-  step_flops = _flops(compiled)
+  step_flops = flops.compiled_flops(compiled)
 
   state, metrics = compiled(state, video, key)
   jax.block_until_ready(metrics)
@@ -74,7 +54,7 @@ def main():
     jax.block_until_ready(metrics)
     times.append(time.perf_counter() - start)
   step_s = float(np.median(times))
-  matmul = matmul_flops_per_s()
+  matmul = flops.matmul_flops_per_s()
 
   frames = args.batch * args.frames
   print(f"device: {jax.devices()[0].device_kind} x{jax.device_count()}, variant {args.variant}, "
