@@ -10,6 +10,7 @@ Commands:
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
   close           -> exits
 """
+import gc
 import json
 import os
 import sys
@@ -43,6 +44,9 @@ class Worker:
     self.env_version = f"{envs.ENV_VERSION}+mani_skill-{mani_skill.__version__}"
     self._frame = None
     self.elapsed, self.success, self.done = 0, False, True
+    # Every reset rebuilds the scene, and ManiSkill then runs gc.collect(), which scans every object of this process:
+    # about 160 ms of a 230 ms reset. Freezing what start-up built (modules, the env) leaves it out of those scans.
+    gc.freeze()
 
   def info(self) -> dict:
     return dict(horizon=self.horizon, env_version=self.env_version, pid=os.getpid())
