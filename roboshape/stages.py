@@ -9,6 +9,7 @@ import json
 import os
 import time
 
+from roboshape import fileio
 from roboshape.cli import UserError
 
 STAGE_MODULES = {
@@ -25,10 +26,7 @@ def save_config(config, workdir: str) -> str:
   """Writes config.json into the workdir (atomically) and returns its path."""
   os.makedirs(workdir, exist_ok=True)
   path = os.path.join(workdir, "config.json")
-  tmp = path + ".tmp"
-  with open(tmp, "w") as f:
-    f.write(config.to_json_best_effort(indent=2, sort_keys=True))
-  os.replace(tmp, path)
+  fileio.atomic_write_text(path, config.to_json_best_effort(indent=2, sort_keys=True))
   return path
 
 

@@ -35,6 +35,7 @@ import tensorflow_datasets as tfds
 from tensorflow_datasets.core import example_serializer
 
 from roboshape import data as data_lib
+from roboshape import fileio
 from roboshape.cli import UserError
 
 LAYOUT = "roboshape-rlds-1"
@@ -131,20 +132,6 @@ def file_sha256(path: str) -> str:
 
 def _disk_full(e: BaseException) -> bool:
   return (isinstance(e, OSError) and e.errno == errno.ENOSPC) or "No space left on device" in str(e)
-
-
-def _atomic_write_text(path: str, text: str) -> None:
-  tmp = f"{path}.tmp"
-  try:
-    with open(tmp, "w") as f:
-      f.write(text)
-      f.flush()
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
-  except BaseException:
-    if os.path.exists(tmp):
-      os.remove(tmp)
-    raise
 
 
 def _write_records(path: str, records: Sequence[bytes]) -> None:
@@ -305,7 +292,7 @@ class DatasetWriter:
   def _save(self, state: Dict[str, Any]) -> None:
     """Writes the TFDS metadata for `state`, then roboshape.json (each file replaced atomically)."""
     write_tfds_metadata(self.path, state, self.features)
-    _atomic_write_text(os.path.join(self.path, data_lib.STATE_FILE), json.dumps(state, indent=1))
+    fileio.atomic_write_text(os.path.join(self.path, data_lib.STATE_FILE), json.dumps(state, indent=1))
 
 
 def write_tfds_metadata(path: str, state: Mapping[str, Any], feats: tfds.features.FeaturesDict) -> None:

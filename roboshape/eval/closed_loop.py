@@ -35,6 +35,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from roboshape import fileio
 from roboshape.cli import UserError
 from roboshape.eval import plots
 from roboshape.eval import results as results_lib
@@ -187,11 +188,11 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
   paths = dict(json=os.path.join(out_dir, "results.json"), csv=os.path.join(out_dir, "results.csv"),
                md=os.path.join(out_dir, "table.md"), tex=os.path.join(out_dir, "table.tex"),
                png=os.path.join(out_dir, "success_by_level.png"))
-  results_lib.write_json(paths["json"], dict(
+  fileio.atomic_write_json(paths["json"], dict(
       task=config.task, encoder=config.encoder, levels=levels, num_seeds=config.eval.num_seeds,
       rollouts_per_seed=config.eval.rollouts_per_seed,
       seed_scheme=f"env seed = {config.eval.seed_offset} + seed_index * {SEED_STRIDE} + rollout",
-      summary=summary, rollouts=[{k: v for k, v in r.items()} for r in records]))
+      summary=summary, rollouts=[{k: v for k, v in r.items()} for r in records]), indent=1)
   results_lib.write_csv(paths["csv"], records)
   cells = tables.cells_from_summary(summary, config.task)
   encoders = [config.encoder]

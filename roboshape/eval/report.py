@@ -13,6 +13,7 @@ import json
 import os
 from typing import Dict, List, Tuple
 
+from roboshape import fileio
 from roboshape.eval import plots
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
@@ -101,10 +102,10 @@ def build_report(config, workdir: str) -> Dict[str, str]:
   else:
     md += ["No run has evaluation results yet.", ""]
   paths["summary.json"] = os.path.join(out_dir, "summary.json")
-  results_lib.write_json(paths["summary.json"], dict(
+  fileio.atomic_write_json(paths["summary.json"], dict(
       runs=[dict(task=t, encoder=e, workdir=d, **({"skipped": loaded[(t, e)]["skipped"]}
                                                    if "skipped" in loaded[(t, e)] else {})) for t, e, d in runs],
-      summary=summary))
+      summary=summary), indent=1)
   paths["results.csv"] = os.path.join(out_dir, "results.csv")
   results_lib.write_csv(paths["results.csv"], rollouts)
   paths["report.md"] = os.path.join(out_dir, "report.md")

@@ -12,11 +12,14 @@ left out of the statistics). Success rates are computed per evaluation seed (ove
 mean +- std (population std, ddof=0) over seeds, as in the paper's tables.
 """
 import csv
+import io
 import json
 import os
 from typing import Dict, Iterable, List, Sequence
 
 import numpy as np
+
+from roboshape import fileio
 
 CSV_FIELDS = ("task", "encoder", "level", "seed_index", "rollout", "seed", "success", "length", "ended")
 
@@ -94,18 +97,10 @@ def summarize(records: Iterable[Dict]) -> List[Dict]:
   return rows
 
 
-def write_json(path: str, payload: Dict) -> None:
-  tmp = path + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(payload, f, indent=1)
-  os.replace(tmp, path)
-
-
 def write_csv(path: str, records: Sequence[Dict]) -> None:
-  tmp = path + ".tmp"
-  with open(tmp, "w", newline="") as f:
-    writer = csv.DictWriter(f, fieldnames=CSV_FIELDS, extrasaction="ignore")
-    writer.writeheader()
-    for r in records:
-      writer.writerow(r)
-  os.replace(tmp, path)
+  text = io.StringIO(newline="")
+  writer = csv.DictWriter(text, fieldnames=CSV_FIELDS, extrasaction="ignore")
+  writer.writeheader()
+  for r in records:
+    writer.writerow(r)
+  fileio.atomic_write_text(path, text.getvalue())

@@ -26,6 +26,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from roboshape import fileio
 from roboshape.cli import UserError
 from roboshape.models import heads
 from roboshape.models import policy as policy_lib
@@ -195,13 +196,6 @@ def policy_dir(workdir: str) -> str:
   return os.path.join(workdir, "policy")
 
 
-def _write_json(path: str, value) -> None:
-  tmp = path + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(value, f, indent=2)
-  os.replace(tmp, path)
-
-
 def train(config, workdir: str, feature_path: str) -> dict:
   """Trains (or resumes) the policy on the features cached in `feature_path`; returns the final validation metrics."""
   pc, tc = config.policy, config.policy.train
@@ -223,7 +217,7 @@ def train(config, workdir: str, feature_path: str) -> dict:
     valid_rows = np.concatenate([np.arange(a, b - 1) for a, b in zip(train_data["offsets"][:-1],
                                                                       train_data["offsets"][1:])])
     stats = norm_stats(train_data["action"][valid_rows])
-    _write_json(stats_path, stats)
+    fileio.atomic_write_json(stats_path, stats)
   normalise = (stats["scale"], stats["offset"])
   train_w = Windows(train_data, pc.history, pc.chunk, normalise)
   val_w = Windows(val_data, pc.history, pc.chunk, normalise)
@@ -265,7 +259,7 @@ def train(config, workdir: str, feature_path: str) -> dict:
   summary = dict(step=int(state["step"]), val_nll=val["nll"], val_action_mse=val["action_mse"],
                  train_episodes=train_w.num_episodes, val_episodes=val_w.num_episodes,
                  features=os.path.abspath(feature_path))
-  _write_json(summary_path, summary)
+  fileio.atomic_write_json(summary_path, summary)
   return summary
 
 

@@ -22,6 +22,7 @@ from typing import Dict, Iterable, List, Optional
 import numpy as np
 from tqdm import tqdm
 
+from roboshape import fileio
 from roboshape.cli import UserError
 
 SPLITS = ("train", "val")
@@ -183,10 +184,7 @@ def build(config, workdir: str, encoder, episode_source=None) -> str:
   manifest = dict(encoder=encoder.name, encoder_identity=encoder.identity, dataset=os.path.abspath(path),
                   dataset_fingerprint=fingerprint, dtype=config.policy.cache_dtype,
                   num_tokens=encoder.num_tokens, token_dim=encoder.token_dim, episodes=counts)
-  tmp = manifest_path + ".tmp"
-  with open(tmp, "w") as f:
-    json.dump(manifest, f, indent=2)
-  os.replace(tmp, manifest_path)
+  fileio.atomic_write_json(manifest_path, manifest)
   return out
 
 

@@ -1,0 +1,26 @@
+"""Small file writes that never leave a half-written file behind: write a sibling `.tmp`, fsync, then rename.
+
+A reader sees the old file or the new one, never a mix; an interrupted write leaves no `.tmp` behind.
+"""
+import json
+import os
+
+
+def atomic_write_text(path: str, text: str) -> None:
+  """Replaces `path` with `text` atomically (the temporary file is removed if anything fails)."""
+  tmp = f"{path}.tmp"
+  try:
+    with open(tmp, "w", newline="") as f:
+      f.write(text)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+  except BaseException:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+    raise
+
+
+def atomic_write_json(path: str, value, indent: int = 2) -> None:
+  """Replaces `path` with `value` as JSON, atomically."""
+  atomic_write_text(path, json.dumps(value, indent=indent))
