@@ -5,7 +5,10 @@
 
 Prints, at --resolution (64) with rendering (RGB + segmentation):
   raw env   : env steps/s of one env in one process, random actions, no expert, no bridge, no writing
-              (a fresh process that imports the simulator only, as a worker does);
+              (a fresh process that imports the simulator only, as a worker does), measured twice: resetting at
+              the task's horizon (random actions never succeed), and resetting every L steps, L the mean length
+              of the expert's episodes in the collect run, so that both sides pay the same resets and the ratio
+              isolates the expert, the bridge and the writing;
   collect 1 : frames/s of the collect path with 1 worker (SimPool expert episodes -> this process -> TFDS shards),
               simulator start-up excluded, writing included;
   collect N : the same with N workers (--workers, 0 = one per CPU core);
@@ -14,6 +17,7 @@ N cores), the storage per 1000 frames, episodes per hour, the expert's success r
 set (3 tasks x 2000 train + 5% val episodes) would take with 1 and with N workers at the measured rates.
 """
 import argparse
+import gc
 import multiprocessing
 import os
 import shutil
@@ -25,42 +29,49 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 
-def _raw_rate(task: str, resolution: int, steps: int, queue) -> None:
-  """Child process: steps/s of one env with random actions (reset at the task's horizon)."""
+def _raw_rate(task: str, resolution: int, steps: int, episode_lengths, queue) -> None:
+  """Child process: steps/s of one env with random actions, once per episode length (0: the task's horizon).
+
+  An episode of length L renders L frames: the reset's and L - 1 steps'. Puts ([steps/s per length], reset s).
+  """
   import numpy as np  # pylint: disable=import-outside-toplevel
   import torch  # pylint: disable=import-outside-toplevel
   torch.set_num_threads(1)
   from roboshape import envs  # pylint: disable=import-outside-toplevel
   env = envs.make_env(task, "train", resolution=resolution)
   unwrapped = env.unwrapped
+  gc.freeze()  # as a sim worker does after start-up (roboshape/sim/worker.py): cheaper resets
   rng = np.random.default_rng(0)
   obs, _ = env.reset(seed=0)
   unwrapped.frames(obs)
   for _ in range(10):  # warm-up: shader compilation, first contacts
     obs, *_ = env.step(torch.as_tensor(rng.uniform(-1, 1, (1, 7)), dtype=torch.float32))
-  start, done, episode_steps, resets = time.perf_counter(), 0, 0, 0
-  while done < steps:
-    obs, *_ = env.step(torch.as_tensor(rng.uniform(-1, 1, (1, 7)), dtype=torch.float32))
-    unwrapped.frames(obs)
-    done += 1
-    episode_steps += 1
-    if episode_steps >= unwrapped.HORIZON:
-      obs, _ = env.reset(seed=1 + resets)
+  rates, resets = [], 0
+  for length in episode_lengths:
+    length = length or unwrapped.HORIZON + 1
+    start, frames, episode_frames = time.perf_counter(), 0, 1
+    while frames < steps:
+      if episode_frames >= length:
+        obs, _ = env.reset(seed=1 + resets)
+        resets += 1
+        episode_frames = 0
+      else:
+        obs, *_ = env.step(torch.as_tensor(rng.uniform(-1, 1, (1, 7)), dtype=torch.float32))
       unwrapped.frames(obs)
-      resets += 1
-      episode_steps = 0
-  rate = done / (time.perf_counter() - start)
+      frames += 1
+      episode_frames += 1
+    rates.append(frames / (time.perf_counter() - start))
   start = time.perf_counter()
   for seed in range(100, 103):
     unwrapped.frames(env.reset(seed=seed)[0])
-  queue.put((rate, (time.perf_counter() - start) / 3))
+  queue.put((rates, (time.perf_counter() - start) / 3))
 
 
-def raw_env_rate(task: str, resolution: int, steps: int):
-  """(env steps/s with random actions, seconds per env.reset) of one env in a fresh process."""
+def raw_env_rate(task: str, resolution: int, steps: int, episode_lengths=(0,)):
+  """([frames/s with random actions per episode length], seconds per env.reset) of one env in a fresh process."""
   ctx = multiprocessing.get_context("spawn")
   queue = ctx.Queue()
-  proc = ctx.Process(target=_raw_rate, args=(task, resolution, steps, queue))
+  proc = ctx.Process(target=_raw_rate, args=(task, resolution, steps, tuple(episode_lengths), queue))
   proc.start()
   rates = queue.get(timeout=3600)
   proc.join()
@@ -105,9 +116,6 @@ def main(argv=None) -> int:
         f"resolution {args.resolution}; N = {workers} workers", flush=True)
   hours_1 = hours_n = 0.0
   for task in tasks:
-    raw, reset_s = raw_env_rate(task, args.resolution, args.raw_steps)
-    print(f"[{task}] raw env      : {raw:7.1f} steps/s (1 env, random actions, no writing); "
-          f"env.reset {reset_s:.2f}s", flush=True)
     config = common.get_config(task, "savi", "tiny")
     config.env.resolution = args.resolution
     config.data.train_episodes = args.episodes
@@ -122,11 +130,14 @@ def main(argv=None) -> int:
             f"({r['episodes']} kept, {r['failures']} expert failures, {r['frames_per_episode']:.0f} frames/episode, "
             f"{r['seconds']:.0f}s)", flush=True)
     one, many = results[1], results[workers]
-    print(f"[{task}] ratio collect 1w / raw env = {one['frames_per_s'] / raw:.2f} (bar >= 0.80)")
-    frames = one["frames_per_episode"]
-    with_resets = frames / ((frames - 1) / raw + reset_s)  # the raw env if it also reset once per episode
-    print(f"[{task}] raw env with one reset per {frames:.0f}-frame episode: {with_resets:.1f} frames/s; "
-          f"collect 1w / that = {one['frames_per_s'] / with_resets:.2f} (the expert, bridge and writing)")
+    length = max(1, round(one["frames_per_episode"]))
+    (raw_horizon, raw), reset_s = raw_env_rate(task, args.resolution, args.raw_steps, (0, length))
+    print(f"[{task}] raw env      : {raw_horizon:7.1f} frames/s resetting at the horizon, {raw:.1f} frames/s resetting "
+          f"every {length} frames as the expert's episodes do (1 env, random actions, no writing); "
+          f"env.reset {reset_s:.2f}s", flush=True)
+    print(f"[{task}] ratio collect 1w / raw env = {one['frames_per_s'] / raw:.2f} with the same resets (bar >= 0.80; "
+          f"the expert, bridge and writing); {one['frames_per_s'] / raw_horizon:.2f} against the raw env resetting "
+          "at the horizon only")
     if workers > 1:
       print(f"[{task}] ratio collect {workers}w / 1w   = {many['frames_per_s'] / one['frames_per_s']:.2f} "
             f"(bar >= {0.8 * workers:.2f})")

@@ -18,6 +18,7 @@ from roboshape.models import policy as policy_lib
 from roboshape.models.encoder import FrozenEncoder
 from roboshape.train import bc
 from roboshape.train import cache
+from roboshape.train import history as history_lib
 
 RES, K, D, H = 8, 3, 6, 4
 
@@ -58,7 +59,7 @@ def _config(steps=400):
   p = config.policy
   p.history, p.width, p.num_layers, p.num_heads, p.dropout = H, 64, 2, 2, 0.0
   p.train.update(dict(steps=steps, batch_size=16, learning_rate=3e-3, warmup_steps=10, log_every=50,
-                      eval_every=steps, checkpoint_every=200, val_batch_size=8))
+                      eval_every=steps // 2, checkpoint_every=200, val_batch_size=8))
   return config
 
 
@@ -163,6 +164,12 @@ def test_tiny_policy_overfits_two_demos(run):
   assert stats["scale"] == [1.0] * 7 and stats["offset"] == [0.0] * 7          # actions already in [-1, 1]
   assert run["summary"]["val_action_mse"] < 0.01, run["summary"]
   assert run["summary"]["val_nll"] < -5.0, run["summary"]                        # from about +7 at init
+  # The validation history holds every eval (the last equal to the summary) and its curves.
+  history = history_lib.load(os.path.join(run["workdir"], "policy"), "val_metrics")
+  tc = run["config"].policy.train
+  assert [h["step"] for h in history] == list(range(tc.eval_every, tc.steps + 1, tc.eval_every))
+  assert history[-1]["nll"] == pytest.approx(run["summary"]["val_nll"]) and history[0]["nll"] > history[-1]["nll"]
+  assert os.path.isfile(os.path.join(run["workdir"], "policy", "val_metrics.png"))
 
 
 def test_checkpoint_round_trip_and_resume_skips(run, capsys):

@@ -1,6 +1,7 @@
 """SAVi (roboshape/models/savi.py, roboshape/train/pretrain.py) and the decomposition metrics, on synthetic clips of
 moving coloured squares whose segmentation ids are known: 16x16 frames, K = 3 slots of size 16."""
 import itertools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -12,6 +13,7 @@ from roboshape import stages
 from roboshape.cli import UserError
 from roboshape.eval import decomposition
 from roboshape.models import savi
+from roboshape.train import history as history_lib
 from roboshape.train import pretrain
 
 STEPS = 30
@@ -121,11 +123,26 @@ def test_a_tiny_model_overfits_one_clip(trained):
 
 def test_training_writes_tensorboard_and_the_decomposition_figure(trained):
   root = pretrain.savi_dir(trained["workdir"])
-  import os  # pylint: disable=import-outside-toplevel
   assert os.path.isfile(os.path.join(root, "figures", f"step_{STEPS:07d}.png"))
   assert any(name.startswith("events") for name in os.listdir(os.path.join(root, "tb")))
   (step, metrics), = trained["result"]["eval"]
   assert step == STEPS and -1 <= metrics["fg_ari"] <= 1 and 0 <= metrics["miou"] <= 1
+  (entry,) = history_lib.load(root, "val_metrics")
+  assert entry["step"] == STEPS and entry["fg_ari"] == metrics["fg_ari"] and entry["train_seconds"] > 0
+  assert os.path.isfile(os.path.join(root, "val_metrics.png"))
+
+
+def test_validation_history_replaces_results_a_resumed_run_redoes(tmp_path):
+  root = str(tmp_path)
+  for step, ari in ((100, 0.1), (200, 0.2), (300, 0.3)):
+    history_lib.record(root, "h", step, {"fg_ari": ari, "miou": ari / 2}, step, keys=("fg_ari", "miou"),
+                       ylim=(None, 1.0))
+  assert history_lib.seconds_at(root, "h", 250) == 200
+  history = history_lib.record(root, "h", 200, {"fg_ari": 0.25, "miou": float("nan")}, 190, keys=("fg_ari", "miou"),
+                               ylim=(None, 1.0))
+  assert [(h["step"], h["fg_ari"]) for h in history] == [(100, 0.1), (200, 0.25)]
+  assert [(h["step"], h["fg_ari"]) for h in history_lib.load(root, "h")] == [(100, 0.1), (200, 0.25)]
+  assert os.path.getsize(os.path.join(root, "h.png")) > 1000
 
 
 def test_masks_sum_to_one_per_pixel(trained):

@@ -1,4 +1,5 @@
-"""The paper's overall figure: mean success rate per encoder and generalization level, averaged over tasks."""
+"""Figures: the paper's overall figure (mean success rate per encoder and generalization level, averaged over
+tasks) and training curves of metrics over steps."""
 import os
 from typing import Dict, List, Sequence
 
@@ -45,6 +46,36 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   ax.set_title(title, fontsize=9)
   ax.legend(fontsize=7, frameon=False)
   ax.spines[["top", "right"]].set_visible(False)
+  fig.tight_layout()
+  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+  fig.savefig(path)
+  plt.close(fig)
+  return path
+
+
+def metric_curve(history: Sequence[Dict], keys: Sequence[str], path: str, title: str = "", ylim=None) -> str:
+  """Writes a PNG of history[i][key] against history[i]["step"], one panel per key, to `path`; returns `path`.
+
+  ylim: (low, high) for every panel, either None for matplotlib's choice; (None, 1.0) suits scores <= 1 (the panel
+  then starts at 0, or lower if a score is negative).
+  """
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+
+  steps = [h["step"] for h in history]
+  fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 2.8), dpi=150, squeeze=False)
+  for ax, key in zip(axes[0], keys):
+    values = [h.get(key, float("nan")) for h in history]
+    ax.plot(steps, values, marker="o", markersize=3)
+    ax.set_xlabel("training step")
+    ax.set_title(key, fontsize=8)
+    if ylim is not None:
+      finite = [v for v in values if np.isfinite(v)]
+      ax.set_ylim(ylim[0] if ylim[0] is not None else min([0.0] + finite), ylim[1])
+    ax.grid(alpha=0.3)
+    ax.spines[["top", "right"]].set_visible(False)
+  fig.suptitle(title, fontsize=9)
   fig.tight_layout()
   os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
   fig.savefig(path)

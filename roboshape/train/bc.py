@@ -13,11 +13,13 @@ shorter than H repeat their last frame and mask the targets past their end. Only
 Outputs in <workdir>/policy/: checkpoints/ (orbax, train state {params, opt_state, step}), tb/ (TensorBoard:
 train NLL, learning rate, gradient norm, validation NLL and action MSE), norm_stats.json (the action
 normalisation: a = scale * a_norm + offset; identity when the demos' actions already lie in [-1, 1]),
-summary.json (the final validation figures). The stage skips when the last checkpoint is at config's steps.
+summary.json (the final validation figures), val_metrics.json / .png (every validation result, across resumes,
+and its curves). The stage skips when the last checkpoint is at config's steps.
 """
 import functools
 import json
 import os
+import time
 from typing import Dict, Optional
 
 import jax
@@ -31,6 +33,7 @@ from roboshape.cli import UserError
 from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.train import cache
+from roboshape.train import history as history_lib
 from roboshape.train.checkpoint import Checkpointer
 
 
@@ -236,6 +239,7 @@ def train(config, workdir: str, feature_path: str) -> dict:
   writer = SummaryWriter(os.path.join(out, "tb"))
   metrics = None
   val = {}
+  seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
   for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
     batch = train_w.sample(tc.batch_size, config.seed, step)
     state, metrics = train_step(state, batch, base_rng)
@@ -248,6 +252,9 @@ def train(config, workdir: str, feature_path: str) -> dict:
       val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
       writer.add_scalar("val/nll", val["nll"], done)
       writer.add_scalar("val/action_mse", val["action_mse"], done)
+      history_lib.record(out, "val_metrics", done, dict(val, train_nll=float(metrics["nll"])),
+                         seconds_before + time.perf_counter() - run_start, keys=("train_nll", "nll", "action_mse"),
+                         title=f"policy validation, {config.name}")
       tqdm.write(f"[train_policy] step {done}: train nll {float(metrics['nll']):.3f}, "
                  f"val nll {val['nll']:.3f}, val action mse {val['action_mse']:.5f}")
     if done % tc.checkpoint_every == 0 or done == tc.steps:

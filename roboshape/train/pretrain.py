@@ -8,7 +8,8 @@ with linear warmup, cosine decay and global-norm clipping. The jitted train step
 of a 1-D mesh ("data") and keeps parameters replicated. Writes under <workdir>/savi/: checkpoints/ (orbax; resumed
 after a kill at the same step, with the same data order since batch i of the dataset's deterministic order always
 feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and val FG-ARI / mIoU of the slot masks,
-see roboshape/eval/decomposition.py), figures/ (input, reconstruction and every slot per eval, as PNG).
+see roboshape/eval/decomposition.py), figures/ (input, reconstruction and every slot per eval, as PNG),
+val_metrics.json and val_metrics.png (every validation result so far, across resumes, and its curve).
 A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint stays.
 """
 import functools
@@ -16,6 +17,7 @@ import itertools
 import json
 import math
 import os
+import time
 from typing import Any, Callable, Dict, Iterator, Optional, Sequence
 
 import jax
@@ -28,6 +30,7 @@ from roboshape.cli import UserError
 from roboshape.eval import decomposition
 from roboshape.models import savi
 from roboshape.models.encoder import FrozenEncoder
+from roboshape.train import history as history_lib
 from roboshape.train.checkpoint import Checkpointer
 
 INIT_SLOTS_SEED = 0  # the fixed key of the frozen encoder's first-frame slots
@@ -193,6 +196,7 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
       state = ckpt.restore(state)
       print(f"[pretrain] resuming from step {start}", flush=True)
     step_key = jax.random.fold_in(key, 2)
+    seconds_before, run_start = history_lib.seconds_at(root, "val_metrics", start), time.perf_counter()
     writer = SummaryWriter(os.path.join(root, "tb"))
     batches = batches_from(start)
     try:
@@ -224,6 +228,8 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
           for name, value in result.items():
             writer.add_scalar(f"val/{name}", value, done)
           evals.append((done, result))
+          history_lib.record(root, "val_metrics", done, result, seconds_before + time.perf_counter() - run_start,
+                             keys=("fg_ari", "miou"), title=f"SAVi validation, {config.name}", ylim=(None, 1.0))
           tqdm.write(f"[pretrain] step {done}: val FG-ARI {result['fg_ari']:.3f} mIoU {result['miou']:.3f} "
                      f"recon MSE {result['recon_mse']:.5f}")
     finally:

@@ -1,0 +1,45 @@
+"""Validation history of a training run: a JSON list of results per step, kept across resumes, and its curve.
+
+  history.record(root, "val_metrics", step, {"fg_ari": 0.61, "miou": 0.5}, train_seconds, keys=("fg_ari", "miou"))
+  -> <root>/val_metrics.json  [{"step": ..., "train_seconds": ..., "fg_ari": ..., ...}, ...]
+     <root>/val_metrics.png   the keys against the step
+"""
+import json
+import os
+from typing import Dict, List, Sequence
+
+from roboshape import fileio
+
+
+def load(root: str, name: str) -> List[Dict[str, float]]:
+  """The results <root>/<name>.json holds (an empty list before the first)."""
+  path = os.path.join(root, f"{name}.json")
+  if not os.path.exists(path):
+    return []
+  with open(path) as f:
+    return json.load(f)
+
+
+def seconds_at(root: str, name: str, step: int) -> float:
+  """Training seconds recorded at the last result at or before `step` (0 if none): where a resumed run's clock
+  starts."""
+  earlier = [h["train_seconds"] for h in load(root, name) if h["step"] <= step]
+  return earlier[-1] if earlier else 0.0
+
+
+def record(root: str, name: str, step: int, metrics: Dict[str, float], train_seconds: float,
+           keys: Sequence[str], title: str = "", ylim=None) -> List[Dict[str, float]]:
+  """Adds the result at `step` to <root>/<name>.json and redraws <root>/<name>.png; returns the history.
+
+  Results at or after `step` (left by a run killed after them and resumed from an earlier checkpoint) are
+  replaced. train_seconds: wall seconds of training up to `step`, summed over the runs that made it.
+  """
+  from roboshape.eval import plots  # pylint: disable=import-outside-toplevel
+  history = [h for h in load(root, name) if h["step"] < step]
+  history.append({"step": int(step), "train_seconds": round(float(train_seconds), 1),
+                  **{k: float(v) for k, v in metrics.items()}})
+  os.makedirs(root, exist_ok=True)
+  fileio.atomic_write_json(os.path.join(root, f"{name}.json"), history)
+  plots.metric_curve(history, keys, os.path.join(root, f"{name}.png"),
+                     title=f"{title} (step {step}, {train_seconds / 60:.0f} min of training)", ylim=ylim)
+  return history
