@@ -32,7 +32,7 @@ sys.path.insert(0, ROOT)
 def _raw_rate(task: str, resolution: int, steps: int, episode_lengths, queue) -> None:
   """Child process: steps/s of one env with random actions, once per episode length (0: the task's horizon).
 
-  An episode of length L renders L frames: the reset's and L - 1 steps'. Puts ([steps/s per length], reset s).
+  An episode of length L renders L frames: the reset's and L - 1 steps'. Puts ([frames/s per length], reset s).
   """
   import numpy as np  # pylint: disable=import-outside-toplevel
   import torch  # pylint: disable=import-outside-toplevel
