@@ -1,12 +1,14 @@
 """SAVi train-step throughput, and how much of the machine's dense-matmul speed the step reaches.
 
-  JAX_PLATFORMS=cpu .venv/bin/python benchmarks/savi_speed.py [--variant=paper|small|tiny] [--steps=3]
+  JAX_PLATFORMS=cpu .venv/bin/python benchmarks/savi_speed.py [--variant=paper|small|tiny] [--steps=3] \
+      [--set savi.pool=2 --set "savi.decoder.strides=(2, 2)" ...]
 
 Times the jitted pretrain step (forward, backward, Adam) at batch 8 x 6 frames of 64x64 with the variant's SAVi
 (paper = SAVi-S), prints frames/s, the step's FLOPs from XLA's cost analysis of the compiled step, and the ratio
 of the step's FLOP/s to the FLOP/s of a large float32 matmul measured in the same run.
 """
 import argparse
+import ast
 import os
 import sys
 import time
@@ -27,9 +29,18 @@ def main():
   parser.add_argument("--steps", type=int, default=3, help="timed steps after one warm-up step")
   parser.add_argument("--batch", type=int, default=8)
   parser.add_argument("--frames", type=int, default=6)
+  parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                      help="override a config field (a Python literal), e.g. --set savi.pool=2")
   args = parser.parse_args()
 
   config = common.get_config("pick", "savi", args.variant)
+  for item in args.set:
+    field, _, value = item.partition("=")
+    *parents, leaf = field.split(".")
+    node = config
+    for name in parents:
+      node = node[name]
+    node[leaf] = ast.literal_eval(value)
   config.env.resolution = 64
   config.savi.train.batch_size = args.batch
   config.savi.train.clip_length = args.frames

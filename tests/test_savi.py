@@ -12,9 +12,11 @@ from configs import common
 from roboshape import stages
 from roboshape.cli import UserError
 from roboshape.eval import decomposition
+from roboshape.eval import videos
 from roboshape.models import savi
 from roboshape.train import history as history_lib
 from roboshape.train import pretrain
+from roboshape.train.checkpoint import Checkpointer
 
 STEPS = 30
 COLORS = np.array([[230, 40, 40], [40, 200, 60], [50, 80, 230], [230, 210, 40]], np.uint8)
@@ -114,6 +116,22 @@ def test_slot_attention_is_equivariant_to_permuting_the_initial_slots():
   assert not np.allclose(out, slots, atol=1e-3)  # the slots did move
 
 
+def test_slot_initializer_shared_and_per_slot_means():
+  noise = jax.random.normal(jax.random.key(1), (2, 4, 8))
+  for mean, mean_shape in (("shared", (8,)), ("per_slot", (4, 8))):
+    module = savi.SlotInitializer(num_slots=4, slot_size=8, mean=mean)
+    params = module.init(jax.random.key(0), noise)
+    assert params["params"]["mean"].shape == mean_shape
+    at_mean = module.apply(params, jnp.zeros_like(noise))     # zero noise: the slots are the learned means
+    np.testing.assert_allclose(at_mean, jnp.broadcast_to(params["params"]["mean"], noise.shape), atol=1e-6)
+    spread = float(jnp.std(at_mean, axis=1).max())             # across the K slots
+    assert (spread > 0.1) if mean == "per_slot" else (spread == 0.0)
+    scaled = module.apply({"params": {**params["params"], "log_scale": jnp.full((8,), np.log(2.0))}}, noise)
+    np.testing.assert_allclose(scaled - at_mean, 2.0 * noise, atol=1e-5)
+  with pytest.raises(ValueError, match="per_slot"):
+    savi.SlotInitializer(num_slots=4, slot_size=8, mean="random").init(jax.random.key(0), noise)
+
+
 def test_a_tiny_model_overfits_one_clip(trained):
   history = trained["result"]["history"]
   assert [s for s, _ in history] == list(range(1, STEPS + 1))
@@ -205,7 +223,6 @@ def test_a_non_finite_loss_stops_naming_step_and_seeds(trained, tmp_path, monkey
   monkeypatch.setattr(comp, "train_step", poisoned)
   with pytest.raises(UserError, match=r"nan at step 15 \(batch 15, episode seeds \[115\]\).*step 10"):
     pretrain.train(config, str(tmp_path), Source(trained["episodes"][0]["image"]))
-  from roboshape.train.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
   with Checkpointer(str(tmp_path / "savi" / "checkpoints")) as ckpt:
     assert ckpt.latest_step() == 10
 
@@ -216,6 +233,59 @@ def test_bad_resolution_is_a_user_error():
   pretrain.validate_config(config)
   config.env.resolution = 25
   with pytest.raises(UserError, match="grid_size"):
+    pretrain.validate_config(config)
+
+
+def test_pool_frames_known_values():
+  frames = np.arange(2 * 4 * 4 * 1, dtype=np.float32).reshape(2, 4, 4, 1)
+  pooled = np.asarray(savi.pool_frames(frames, 2))
+  assert pooled.shape == (2, 2, 2, 1)
+  assert pooled[0, 0, 0, 0] == pytest.approx((0 + 1 + 4 + 5) / 4)
+  assert pooled[1, 1, 1, 0] == pytest.approx((26 + 27 + 30 + 31) / 4)
+  np.testing.assert_array_equal(savi.pool_frames(frames, 1), frames)
+
+
+def test_a_pooled_model_is_evaluated_at_the_segmentation_resolution(tmp_path):
+  config = tiny_config()
+  config.savi.pool = 2
+  pretrain.validate_config(config)
+  comp = pretrain.compiled(config)
+  state = comp.init_state(jax.random.key(0), (1, 6, 16, 16, 3))
+  params = state["params"]
+  video = synthetic_episode(3)["image"]
+  out = comp.eval_video(params, video[None])
+  assert out["masks"].shape == (1, 6, 3, 8, 8) and out["recon"].shape == (1, 6, 8, 8, 3)
+  # The evaluation videos show the 8x8 reconstruction and slots at the frames' 16x16, beside the frames.
+  stages.save_config(config, str(tmp_path))
+  with Checkpointer(os.path.join(pretrain.savi_dir(str(tmp_path)), "checkpoints")) as ckpt:
+    ckpt.save(1, state)
+  panels = videos.SaviSlotVideo(str(tmp_path), pad_multiple=8)(video)
+  assert panels.shape == (6, 16, 16 * (2 + 3) + 2 * (1 + 3), 3)
+  recon_panel = panels[:, :, 18:34].astype(np.float32) / 255.0
+  expected = np.clip(np.asarray(out["recon"][0]), 0, 1).repeat(2, axis=1).repeat(2, axis=2)
+  np.testing.assert_allclose(recon_panel, expected, atol=1 / 255 + 1e-6)
+  # An oracle whose 8x8 masks are the segmentation's 2x2 blocks scores FG-ARI 1 at 16x16 and reconstructs the pooled
+  # frames exactly: the evaluation repeats each mask pixel 2x2 and compares the recon with the pooled frames.
+  seg = np.zeros((6, 16, 16), np.uint8)
+  seg[:, 8:] = 1
+  seg[:, 2:6, 4:8], seg[:, 10:14, 2:6] = 3, 4
+  small = seg[:, ::2, ::2]
+  masks = np.moveaxis(np.eye(3)[np.array([0, 0, 0, 1, 2])[small]], -1, 1)  # ids 0, 1 -> slot 0; 3 -> 1; 4 -> 2
+  frames = np.repeat(np.repeat(video[:, ::2, ::2], 2, axis=1), 2, axis=2)   # constant 2x2 blocks
+  pooled = frames[:, ::2, ::2].astype(np.float32) / 255.0
+
+  class Oracle:
+    model = comp.model
+
+    @staticmethod
+    def eval_video(_, clip):
+      return {"masks": masks[None], "recon": pooled[None], "rgb": np.repeat(pooled[None, :, None], 3, axis=2)}
+
+  result = pretrain.evaluate(Oracle, None, [{"image": frames, "segmentation": seg}], config.savi.eval)
+  assert result["fg_ari"] == pytest.approx(1.0)
+  assert result["recon_mse"] == pytest.approx(0.0, abs=1e-10)
+  config.savi.pool = 3
+  with pytest.raises(UserError, match="savi.pool"):
     pretrain.validate_config(config)
 
 

@@ -89,8 +89,9 @@ class SaviSlotVideo:
     t = frames.shape[0]
     padded = np.concatenate([frames, np.repeat(frames[-1:], (-t) % self.pad_multiple, axis=0)])
     out = jax.device_get(comp.eval_video(params, padded[None]))
-    recon = np.clip(out["recon"][0, :t], 0.0, 1.0)                                  # [T, H, W, 3]
-    slots = decomposition.masked_slots(out["rgb"][0, :t], out["masks"][0, :t])     # [T, K, H, W, 3]
-    to_u8 = lambda x: (np.asarray(x) * 255.0 + 0.5).astype(np.uint8)
+    recon = np.clip(out["recon"][0, :t], 0.0, 1.0)                                  # [T, h, w, 3]
+    slots = decomposition.masked_slots(out["rgb"][0, :t], out["masks"][0, :t])     # [T, K, h, w, 3]
+    pool = comp.model.input_pool                                                    # h = H / pool
+    to_u8 = lambda x: (np.asarray(x).repeat(pool, axis=-3).repeat(pool, axis=-2) * 255.0 + 0.5).astype(np.uint8)
     panels = [frames, to_u8(recon)] + [to_u8(slots[:, k]) for k in range(slots.shape[1])]
     return side_by_side(panels)

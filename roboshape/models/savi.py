@@ -48,14 +48,23 @@ class CNNEncoder(nn.Module):
 
 
 class SlotInitializer(nn.Module):
-  """K slots drawn from one learned diagonal Gaussian (mean and log-scale of size D, shared by the slots)."""
+  """K slots drawn from learned diagonal Gaussians.
+
+  mean="shared": one mean [D] for all slots, so only the noise tells the slots apart (the Slot Attention paper's
+  initialisation). mean="per_slot": a learned mean per slot [K, D], so the first frame's slots start from K
+  distinct learned points rather than from noise around one point. The log-scale [D] is shared.
+  """
   num_slots: int
   slot_size: int
+  mean: str = "shared"
 
   @nn.compact
   def __call__(self, noise: jnp.ndarray) -> jnp.ndarray:
     """noise [..., K, D] standard normal -> slots [..., K, D] = mean + exp(log_scale) * noise."""
-    mean = self.param("mean", nn.initializers.normal(1.0), (self.slot_size,))
+    if self.mean not in ("shared", "per_slot"):
+      raise ValueError(f"unknown slot initialisation mean {self.mean!r}; use 'shared' or 'per_slot'.")
+    shape = (self.slot_size,) if self.mean == "shared" else (self.num_slots, self.slot_size)
+    mean = self.param("mean", nn.initializers.normal(1.0), shape)
     log_scale = self.param("log_scale", nn.initializers.zeros, (self.slot_size,))
     return mean + jnp.exp(log_scale) * noise
 
@@ -169,6 +178,14 @@ class SpatialBroadcastDecoder(nn.Module):
     return {"recon": recon, "rgb": rgb, "masks": masks}
 
 
+def pool_frames(frames: jnp.ndarray, factor: int) -> jnp.ndarray:
+  """Average-pools frames [..., H, W, C] by `factor` in both directions -> [..., H / factor, W / factor, C]."""
+  if factor == 1:
+    return frames
+  *lead, h, w, c = frames.shape
+  return frames.reshape(*lead, h // factor, factor, w // factor, factor, c).mean(axis=(-4, -2))
+
+
 def _fold_time(x: jnp.ndarray) -> jnp.ndarray:
   return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
 
@@ -181,9 +198,12 @@ class SAVi(nn.Module):
   """The SAVi video model: CNN encoder, slot initializer, corrector + predictor scanned over time, decoder.
 
   Frames are float in [0, 1]. The model's rng stream "slots" draws the initial slots when none are given.
+  With input_pool = f > 1 the frames are average-pooled by f before the encoder and the decoder reconstructs the
+  pooled frames (a cheaper model of the same frames; the masks are 1/f of the frames' resolution).
   """
   num_slots: int = 11
   slot_size: int = 128
+  init_mean: str = "shared"
   num_iterations: int = 2
   slot_mlp_size: int = 256
   encoder_features: Sequence[int] = (32, 32, 32, 32, 32)
@@ -198,11 +218,12 @@ class SAVi(nn.Module):
   decoder_kernel_size: int = 5
   decoder_strides: Sequence[int] = (2, 2, 2, 1)
   decoder_upsampling: str = "subpixel"
+  input_pool: int = 1
 
   def setup(self):
     self.encoder = CNNEncoder(self.encoder_features, self.encoder_kernel_size, self.encoder_strides,
                               self.encoder_mlp_size, self.feature_size)
-    self.initializer = SlotInitializer(self.num_slots, self.slot_size)
+    self.initializer = SlotInitializer(self.num_slots, self.slot_size, self.init_mean)
     self.processor = Processor(self.num_iterations, self.slot_mlp_size, self.predictor_heads,
                                self.predictor_mlp_size)
     self.decoder = SpatialBroadcastDecoder(self.decoder_grid_size, self.decoder_features, self.decoder_kernel_size,
@@ -222,19 +243,20 @@ class SAVi(nn.Module):
 
   def step(self, frame: jnp.ndarray, state: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
     """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state)."""
-    return self.processor(state, self.encoder(frame))
+    return self.processor(state, self.encoder(pool_frames(frame, self.input_pool)))
 
   def __call__(self, video: jnp.ndarray, init_slots: Optional[jnp.ndarray] = None,
                decode: bool = True) -> Dict[str, jnp.ndarray]:
     """video [B, T, H, W, 3] in [0, 1] (and optionally the first frame's slots [B, K, D]) -> dict:
 
     slots [B, T, K, D] (corrected), predicted [B, T, K, D] (each frame's prediction for the next one), and when
-    `decode`: recon [B, T, H, W, 3], rgb [B, T, K, H, W, 3], masks [B, T, K, H, W].
+    `decode`: recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3], masks [B, T, K, h, w] with h = H / input_pool.
     """
     batch = video.shape[0]
     if init_slots is None:
       noise = jax.random.normal(self.make_rng("slots"), (batch, self.num_slots, self.slot_size))
       init_slots = self.initial_slots(noise)
+    video = pool_frames(video, self.input_pool)
     features = _unfold_time(self.encoder(_fold_time(video)), batch)      # [B, T, N, F]
 
     def body(processor, carry, frame_features):
@@ -250,10 +272,15 @@ class SAVi(nn.Module):
     return out
 
 
+def input_pool(savi_config) -> int:
+  """The factor config.savi.pool by which SAVi average-pools the frames (1 when the config has no such field)."""
+  return int(savi_config.get("pool", 1))
+
+
 def decoder_grid_size(savi_config, resolution: int) -> int:
-  """The broadcast grid's side: config.savi.decoder.grid_size, or resolution / prod(strides) when it is 0."""
+  """The broadcast grid's side: config.savi.decoder.grid_size, or (resolution / pool) / prod(strides) when it is 0."""
   grid = int(savi_config.decoder.grid_size)
-  return grid if grid > 0 else resolution // math.prod(savi_config.decoder.strides)
+  return grid if grid > 0 else resolution // input_pool(savi_config) // math.prod(savi_config.decoder.strides)
 
 
 def build_model(savi_config, resolution: int) -> SAVi:
@@ -261,7 +288,8 @@ def build_model(savi_config, resolution: int) -> SAVi:
   `resolution` pixels a side."""
   c = savi_config
   return SAVi(
-      num_slots=int(c.num_slots), slot_size=int(c.slot_size), num_iterations=int(c.num_iterations),
+      num_slots=int(c.num_slots), slot_size=int(c.slot_size), init_mean=str(c.get("init_mean", "shared")),
+      num_iterations=int(c.num_iterations),
       slot_mlp_size=int(c.slot_mlp_size),
       encoder_features=tuple(c.encoder.features), encoder_kernel_size=int(c.encoder.kernel_size),
       encoder_strides=tuple(c.encoder.strides), encoder_mlp_size=int(c.encoder.mlp_size),
@@ -269,4 +297,4 @@ def build_model(savi_config, resolution: int) -> SAVi:
       predictor_heads=int(c.predictor.num_heads), predictor_mlp_size=int(c.predictor.mlp_size),
       decoder_grid_size=decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
-      decoder_upsampling=str(c.decoder.upsampling))
+      decoder_upsampling=str(c.decoder.upsampling), input_pool=input_pool(c))

@@ -49,11 +49,14 @@ def validate_config(config) -> None:
   if len(c.decoder.features) != len(c.decoder.strides):
     raise UserError(f"savi.decoder.features ({len(c.decoder.features)} layers) and savi.decoder.strides "
                     f"({len(c.decoder.strides)}) must have the same length.")
-  out = savi.decoder_grid_size(c, config.env.resolution) * math.prod(c.decoder.strides)
-  if out != config.env.resolution:
+  pool = savi.input_pool(c)
+  if pool < 1 or config.env.resolution % pool:
+    raise UserError(f"savi.pool={pool} must be a positive divisor of env.resolution={config.env.resolution}.")
+  out, want = savi.decoder_grid_size(c, config.env.resolution) * math.prod(c.decoder.strides), config.env.resolution // pool
+  if out != want:
     raise UserError(f"the SAVi decoder outputs {out}x{out} images (savi.decoder.grid_size * prod(strides)) but "
-                    f"env.resolution is {config.env.resolution}; set --config.savi.decoder.grid_size=0 (automatic) "
-                    f"or change savi.decoder.strides.")
+                    f"the frames it models are {want}x{want} (env.resolution {config.env.resolution} / savi.pool "
+                    f"{pool}); set --config.savi.decoder.grid_size=0 (automatic) or change savi.decoder.strides.")
   devices = jax.local_device_count()
   if c.train.batch_size % devices:
     raise UserError(f"savi.train.batch_size={c.train.batch_size} does not split over {devices} devices; "
@@ -102,8 +105,9 @@ class _Compiled:
     step_key = jax.random.fold_in(key, state["step"])
 
     def loss_fn(params):
-      target = _to_float(video)
-      out = self.model.apply({"params": params}, target, rngs={"slots": step_key})
+      frames = _to_float(video)
+      target = savi.pool_frames(frames, self.model.input_pool)
+      out = self.model.apply({"params": params}, frames, rngs={"slots": step_key})
       mse = jnp.mean(jnp.square(out["recon"] - target))
       return mse, mse
 
@@ -145,20 +149,26 @@ def evaluate(comp: _Compiled, params, episodes: Sequence[Dict[str, np.ndarray]],
              figure_path: Optional[str] = None, title: str = "") -> Dict[str, float]:
   """FG-ARI and matched mIoU of the slot masks on whole (first `eval_config.frames` frames of) episodes.
 
+  Masks of a pooled model (savi.pool = f) are compared at the segmentation's resolution, each mask pixel repeated
+  f x f; the reconstruction error is against the pooled frames.
+
   episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W]. Writes the decomposition figure
   of the first episode to `figure_path` when given.
   """
+  pool = comp.model.input_pool
   aris, ious, mses = [], [], []
   for i, episode in enumerate(episodes):
     video = episode["image"][:eval_config.frames]
     out = jax.device_get(comp.eval_video(params, video[None]))
     seg = episode["segmentation"][:eval_config.frames]
-    aris.append(decomposition.fg_ari(seg, out["masks"][0], eval_config.background_ids))
-    ious.append(decomposition.matched_miou(seg, out["masks"][0], eval_config.background_ids))
-    mses.append(float(np.mean((out["recon"][0] - video / 255.0) ** 2)))
+    masks = out["masks"][0].repeat(pool, axis=-2).repeat(pool, axis=-1)   # at the segmentation's resolution
+    aris.append(decomposition.fg_ari(seg, masks, eval_config.background_ids))
+    ious.append(decomposition.matched_miou(seg, masks, eval_config.background_ids))
+    frames = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, pool))
+    mses.append(float(np.mean((out["recon"][0] - frames) ** 2)))
     if i == 0 and figure_path:
       n = eval_config.figure_frames
-      decomposition.decomposition_figure(video[:n], out["recon"][0, :n], out["rgb"][0, :n], out["masks"][0, :n],
+      decomposition.decomposition_figure(frames[:n], out["recon"][0, :n], out["rgb"][0, :n], out["masks"][0, :n],
                                          figure_path, title)
   with np.errstate(all="ignore"):
     return {"fg_ari": float(np.nanmean(aris)) if aris else float("nan"),

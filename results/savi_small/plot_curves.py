@@ -1,0 +1,50 @@
+"""Draws the validation FG-ARI and reconstruction MSE of the SAVi runs in this folder into fg_ari_curves.png.
+
+  .venv/bin/python results/savi_small/plot_curves.py
+
+Each <name>.json here is a copy of a run's <workdir>/savi/val_metrics.json (see README.md for the commands).
+"""
+import json
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+from matplotlib import pyplot as plt  # pylint: disable=wrong-import-position
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RUNS = {  # file -> legend
+    "small_64x64_shared.json": "64x64, shared init (the former :small)",
+    "small_pooled_per_slot.json": "32x32 pooled, per-slot init (the :small now)",
+    "pooled_lr1e-3.json": "32x32 pooled, per-slot init, lr 1e-3",
+    "pooled_per_slot_3iters_clip2.json": "32x32, per-slot, 3 iterations, 24 clips x 2",
+    "pooled_shared_3iters_clip1.json": "32x32, shared, 3 iterations, 48 single frames",
+}
+
+
+def main():
+  fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=130)
+  for name, label in RUNS.items():
+    with open(os.path.join(HERE, name)) as f:
+      history = json.load(f)
+    steps = [h["step"] for h in history]
+    axes[0].plot(steps, [h["fg_ari"] for h in history], marker="o", markersize=2.5, label=label)
+    axes[1].plot(steps, [h["recon_mse"] for h in history], marker="o", markersize=2.5, label=label)
+  axes[0].axhline(0.6, color="grey", linestyle="--", linewidth=1)
+  axes[0].text(50, 0.56, "bar: FG-ARI 0.6", color="grey", fontsize=8)
+  axes[0].set_ylim(-0.1, 0.7)
+  axes[0].set_ylabel("validation FG-ARI")
+  axes[1].set_ylabel("validation reconstruction MSE")
+  for ax in axes:
+    ax.set_xlabel("training step")
+    ax.grid(alpha=0.3)
+  axes[1].legend(fontsize=7)
+  fig.suptitle("SAVi on the :small push set (8 validation episodes x 24 frames), 2-core CPU")
+  fig.tight_layout()
+  out = os.path.join(HERE, "fg_ari_curves.png")
+  fig.savefig(out)
+  print(out)
+
+
+if __name__ == "__main__":
+  main()
