@@ -71,7 +71,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
   average-pooled to 32x32 (pool=2; its masks are scored at 64x64), the first conv has stride 2, the decoder has two
   3x3 stride-2 layers of 32 and 16 channels (it runs once per slot), and each slot has its own learned initial mean.
   That is 4.4x fewer seconds per step than the same design at 64x64 (benchmarks/savi_speed.py); neither reached the
-  FG-ARI >= 0.6 bar on the :small push set within 3000 steps (results/push_small/README.md).
+  FG-ARI >= 0.6 bar on the :small push set (3000 and 1200 steps; results/savi_small/README.md).
   tiny: a toy model for tests and `make demo`.
   """
   paper = variant == "paper"

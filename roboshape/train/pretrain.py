@@ -52,7 +52,8 @@ def validate_config(config) -> None:
   pool = savi.input_pool(c)
   if pool < 1 or config.env.resolution % pool:
     raise UserError(f"savi.pool={pool} must be a positive divisor of env.resolution={config.env.resolution}.")
-  out, want = savi.decoder_grid_size(c, config.env.resolution) * math.prod(c.decoder.strides), config.env.resolution // pool
+  out = savi.decoder_grid_size(c, config.env.resolution) * math.prod(c.decoder.strides)
+  want = config.env.resolution // pool
   if out != want:
     raise UserError(f"the SAVi decoder outputs {out}x{out} images (savi.decoder.grid_size * prod(strides)) but "
                     f"the frames it models are {want}x{want} (env.resolution {config.env.resolution} / savi.pool "
