@@ -92,6 +92,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
       predictor=ml_collections.ConfigDict(dict(
           num_heads=4,
           mlp_size=_pick(variant, 256, 256, 64),
+          identity_init=False,      # True: the predictor starts as LayerNorm (no mixing of slots) at step 0
       )),
       decoder=ml_collections.ConfigDict(dict(
           grid_size=0,            # broadcast grid side; 0: env.resolution / pool / prod(strides), 8x8 at 64x64

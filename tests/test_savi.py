@@ -13,6 +13,7 @@ from roboshape import stages
 from roboshape.cli import UserError
 from roboshape.eval import decomposition
 from roboshape.eval import videos
+from roboshape.models import layers
 from roboshape.models import savi
 from roboshape.train import history as history_lib
 from roboshape.train import pretrain
@@ -131,6 +132,18 @@ def test_slot_initializer_shared_and_per_slot_means():
   with pytest.raises(ValueError, match="per_slot"):
     savi.SlotInitializer(num_slots=4, slot_size=8, mean="random").init(jax.random.key(0), noise)
 
+
+def test_an_identity_initialised_predictor_starts_as_layernorm():
+  slots = 3.0 * jax.random.normal(jax.random.key(2), (2, 5, 16)) + 1.0
+  mean = slots.mean(-1, keepdims=True)
+  normalised = (slots - mean) / jnp.sqrt(((slots - mean) ** 2).mean(-1, keepdims=True) + 1e-6)
+  for identity_init in (True, False):
+    block = layers.TransformerBlock(num_heads=4, mlp_size=32, identity_init=identity_init)
+    out = block.apply(block.init(jax.random.key(3), slots), slots)
+    if identity_init:  # each slot keeps its own content, normalised
+      np.testing.assert_allclose(out, normalised, atol=1e-4)
+    else:              # a random attention and MLP move the slots away from it
+      assert float(jnp.abs(out - normalised).max()) > 0.1
 
 def test_a_tiny_model_overfits_one_clip(trained):
   history = trained["result"]["history"]

@@ -19,6 +19,8 @@ RUNS = {  # file -> legend
     "pooled_lr1e-3.json": "32x32 pooled, per-slot init, lr 1e-3",
     "pooled_per_slot_3iters_clip2.json": "32x32, per-slot, 3 iterations, 24 clips x 2",
     "pooled_shared_3iters_clip1.json": "32x32, shared, 3 iterations, 48 single frames",
+    "pooled_predictor_identity_init.json": "32x32, per-slot, predictor starting as LayerNorm",
+    "probe_single_frames_b16.json": "probe.py: 16 single frames per step (6 val episodes x 12 frames)",
 }
 
 
@@ -29,7 +31,8 @@ def main():
       history = json.load(f)
     steps = [h["step"] for h in history]
     axes[0].plot(steps, [h["fg_ari"] for h in history], marker="o", markersize=2.5, label=label)
-    axes[1].plot(steps, [h["recon_mse"] for h in history], marker="o", markersize=2.5, label=label)
+    if "recon_mse" in history[0]:  # the probe records the training loss only
+      axes[1].plot(steps, [h["recon_mse"] for h in history], marker="o", markersize=2.5, label=label)
   axes[0].axhline(0.6, color="grey", linestyle="--", linewidth=1)
   axes[0].text(50, 0.56, "bar: FG-ARI 0.6", color="grey", fontsize=8)
   axes[0].set_ylim(-0.1, 0.7)
@@ -38,7 +41,7 @@ def main():
   for ax in axes:
     ax.set_xlabel("training step")
     ax.grid(alpha=0.3)
-  axes[1].legend(fontsize=7)
+  axes[0].legend(fontsize=6, loc="upper left")
   fig.suptitle("SAVi on the :small push set (8 validation episodes x 24 frames), 2-core CPU")
   fig.tight_layout()
   out = os.path.join(HERE, "fg_ari_curves.png")

@@ -93,6 +93,7 @@ class SlotAttention(nn.Module):
       queries = query_dense(norm_slots(slots)) / math.sqrt(slot_size)     # [B, K, D]
       logits = jnp.einsum("bkd,bnd->bkn", queries, keys)                  # [B, K, N]
       attention = jax.nn.softmax(logits, axis=1)                          # over the slots
+      self.sow("intermediates", "attention", attention)                   # kept only when asked for (mutable)
       weights = attention / (attention.sum(axis=-1, keepdims=True) + self.epsilon)
       updates = jnp.einsum("bkn,bnd->bkd", weights, values)               # weighted mean, [B, K, D]
       slots, _ = gru(slots, updates)
@@ -109,10 +110,11 @@ class Processor(nn.Module):
   slot_mlp_size: int
   predictor_heads: int
   predictor_mlp_size: int
+  predictor_identity_init: bool = False
 
   def setup(self):
     self.corrector = SlotAttention(self.num_iterations, self.slot_mlp_size)
-    self.predictor = layers.TransformerBlock(self.predictor_heads, self.predictor_mlp_size)
+    self.predictor = layers.TransformerBlock(self.predictor_heads, self.predictor_mlp_size, self.predictor_identity_init)
 
   def __call__(self, predicted: jnp.ndarray, features: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
     corrected = self.corrector(predicted, features)
@@ -213,6 +215,7 @@ class SAVi(nn.Module):
   feature_size: int = 64
   predictor_heads: int = 4
   predictor_mlp_size: int = 256
+  predictor_identity_init: bool = False
   decoder_grid_size: int = 8
   decoder_features: Sequence[int] = (64, 64, 64, 64)
   decoder_kernel_size: int = 5
@@ -225,7 +228,7 @@ class SAVi(nn.Module):
                               self.encoder_mlp_size, self.feature_size)
     self.initializer = SlotInitializer(self.num_slots, self.slot_size, self.init_mean)
     self.processor = Processor(self.num_iterations, self.slot_mlp_size, self.predictor_heads,
-                               self.predictor_mlp_size)
+                               self.predictor_mlp_size, self.predictor_identity_init)
     self.decoder = SpatialBroadcastDecoder(self.decoder_grid_size, self.decoder_features, self.decoder_kernel_size,
                                            self.decoder_strides, self.decoder_upsampling)
 
@@ -263,7 +266,8 @@ class SAVi(nn.Module):
       corrected, predicted = processor(carry, frame_features)
       return predicted, (corrected, predicted)
 
-    scan = nn.scan(body, variable_broadcast="params", split_rngs={"params": False}, in_axes=1, out_axes=1)
+    scan = nn.scan(body, variable_broadcast="params", variable_axes={"intermediates": 1}, split_rngs={"params": False},
+                   in_axes=1, out_axes=1)
     _, (slots, predicted) = scan(self.processor, init_slots, features)
     out = {"slots": slots, "predicted": predicted}
     if decode:
@@ -295,6 +299,7 @@ def build_model(savi_config, resolution: int) -> SAVi:
       encoder_strides=tuple(c.encoder.strides), encoder_mlp_size=int(c.encoder.mlp_size),
       feature_size=int(c.encoder.output_size),
       predictor_heads=int(c.predictor.num_heads), predictor_mlp_size=int(c.predictor.mlp_size),
+      predictor_identity_init=bool(c.predictor.get("identity_init", False)),
       decoder_grid_size=decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), input_pool=input_pool(c))
