@@ -8,7 +8,6 @@ Times the jitted pretrain step (forward, backward, Adam) at batch 8 x 6 frames o
 of the step's FLOP/s to the FLOP/s of a large float32 matmul measured in the same run.
 """
 import argparse
-import ast
 import os
 import sys
 import time
@@ -35,12 +34,7 @@ def main():
 
   config = common.get_config("pick", "savi", args.variant)
   for item in args.set:
-    field, _, value = item.partition("=")
-    *parents, leaf = field.split(".")
-    node = config
-    for name in parents:
-      node = node[name]
-    node[leaf] = ast.literal_eval(value)
+    common.override(config, item)
   config.env.resolution = 64
   config.savi.train.batch_size = args.batch
   config.savi.train.clip_length = args.frames

@@ -13,6 +13,8 @@ predicts the next 8 actions and ensembles them over time at control time (off in
 Every field can be overridden on the command line, e.g. `--config.policy.train.steps=100`.
 Each section below belongs to one part of the code base (named in its function's docstring).
 """
+import ast
+
 import ml_collections
 
 TASKS = ("push", "pick", "place")
@@ -223,3 +225,14 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
   if modifier:
     config.policy.chunk = MODIFIERS[modifier]
   return config
+
+
+def override(config: ml_collections.ConfigDict, item: str) -> None:
+  """Sets one field from "dotted.field=VALUE" (VALUE a Python literal, e.g. "savi.decoder.strides=(2, 2)"), for
+  scripts that take overrides outside launch.py's --config.x flags."""
+  field, _, value = item.partition("=")
+  *parents, leaf = field.split(".")
+  node = config
+  for name in parents:
+    node = node[name]
+  node[leaf] = ast.literal_eval(value)

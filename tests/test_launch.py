@@ -76,3 +76,12 @@ def test_chunk_variant_turns_on_action_chunking():
   assert chunked.data.train_episodes == common.get_config("pick", "savi", "small").data.train_episodes
   with pytest.raises(ValueError, match="unknown variant 'small_fast'"):
     common.get_config("pick", "savi", "small_fast")
+
+
+def test_override_sets_a_nested_field_from_a_python_literal():
+  config = common.get_config("push", "savi", "tiny")
+  common.override(config, "savi.decoder.strides=(2, 2)")
+  common.override(config, "savi.train.learning_rate=1e-3")
+  assert tuple(config.savi.decoder.strides) == (2, 2) and config.savi.train.learning_rate == 1e-3
+  with pytest.raises(KeyError):
+    common.override(config, "savi.no_such_field.x=1")

@@ -44,12 +44,7 @@ def main(steps, overrides):
   image, lengths, val_image, val_seg = load()
   config = common.get_config("push", "savi", "small")
   for item in overrides:
-    key, value = item.split("=", 1)
-    *path, last = key.split(".")
-    node = config
-    for p in path:
-      node = node[p]
-    node[last] = type(node[last])(eval(value))  # pylint: disable=eval-used
+    common.override(config, item)
   config.savi.train.steps = steps
   length, batch = config.savi.train.clip_length, config.savi.train.batch_size
   offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
@@ -64,7 +59,7 @@ def main(steps, overrides):
     losses.append(float(metrics["loss"]))
     if step % int(os.environ.get("EVERY", 500)) == 0 or step == steps:
       out = jax.device_get(comp.eval_video(state["params"], val_image[:n, :frames]))
-      masks = out["masks"].repeat(pool, -2).repeat(pool, -1)
+      masks = decomposition.upsample_masks(out["masks"], pool)
       ari = np.mean([decomposition.fg_ari(val_seg[i, :frames], masks[i]) for i in range(n)])
       print(f"step {step}: loss {np.mean(losses[-50:]):.4f}  val FG-ARI {ari:.3f}  "
             f"max-over-slots mask {masks.max(axis=2).mean():.3f}  {time.time() - start:.0f} s", flush=True)
@@ -74,9 +69,9 @@ def main(steps, overrides):
                                 mutable=["intermediates"])
   attention = np.asarray(jax.tree.leaves(inter)[-1])          # [B, T, K, N], the last iteration
   side = int(np.sqrt(attention.shape[-1]))
-  up = val_seg.shape[-1] // side
-  attention = attention.reshape(*attention.shape[:3], side, side).repeat(up, -2).repeat(up, -1)
-  masks = np.asarray(out["masks"]).repeat(pool, -2).repeat(pool, -1)
+  attention = decomposition.upsample_masks(attention.reshape(*attention.shape[:3], side, side),
+                                          val_seg.shape[-1] // side)
+  masks = decomposition.upsample_masks(out["masks"], pool)
   seg = val_seg[:n, :frames]
   print("FG-ARI, decoder masks, frames 0-11:", round(np.mean([decomposition.fg_ari(seg[i], masks[i]) for i in range(n)]), 3))
   print("FG-ARI, decoder masks, frame 0:    ",

@@ -82,6 +82,12 @@ def matched_miou(segmentation: np.ndarray, masks: np.ndarray, background_ids: Se
   return float(iou[rows, cols].sum() / ids.size)
 
 
+def upsample_masks(masks: np.ndarray, factor: int) -> np.ndarray:
+  """Nearest-neighbour upsampling of masks [..., h, w] by an integer factor -> [..., h * factor, w * factor] (the
+  masks of a model of pooled frames, at the segmentation's resolution)."""
+  return np.asarray(masks).repeat(factor, axis=-2).repeat(factor, axis=-1)
+
+
 def masked_slots(rgb: np.ndarray, masks: np.ndarray, fill: float = 1.0) -> np.ndarray:
   """Each slot's reconstruction shown through its mask: rgb [..., K, H, W, 3], masks [..., K, H, W] -> same as rgb,
   blended towards `fill` (white) where the slot does not own the pixel."""

@@ -9,7 +9,7 @@ import numpy as np
 
 
 def upscale(frames: np.ndarray, factor: int) -> np.ndarray:
-  """Nearest-neighbour upscaling of uint8 [T, H, W, C] frames by an integer factor (64 px frames are tiny)."""
+  """Nearest-neighbour upscaling of [T, H, W, C] frames (any dtype) by an integer factor (64 px frames are tiny)."""
   if factor <= 1:
     return frames
   return np.repeat(np.repeat(frames, factor, axis=1), factor, axis=2)
@@ -92,6 +92,6 @@ class SaviSlotVideo:
     recon = np.clip(out["recon"][0, :t], 0.0, 1.0)                                  # [T, h, w, 3]
     slots = decomposition.masked_slots(out["rgb"][0, :t], out["masks"][0, :t])     # [T, K, h, w, 3]
     pool = comp.model.input_pool                                                    # h = H / pool
-    to_u8 = lambda x: (np.asarray(x).repeat(pool, axis=-3).repeat(pool, axis=-2) * 255.0 + 0.5).astype(np.uint8)
+    to_u8 = lambda x: (upscale(np.asarray(x), pool) * 255.0 + 0.5).astype(np.uint8)
     panels = [frames, to_u8(recon)] + [to_u8(slots[:, k]) for k in range(slots.shape[1])]
     return side_by_side(panels)

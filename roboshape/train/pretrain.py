@@ -162,7 +162,7 @@ def evaluate(comp: _Compiled, params, episodes: Sequence[Dict[str, np.ndarray]],
     video = episode["image"][:eval_config.frames]
     out = jax.device_get(comp.eval_video(params, video[None]))
     seg = episode["segmentation"][:eval_config.frames]
-    masks = out["masks"][0].repeat(pool, axis=-2).repeat(pool, axis=-1)   # at the segmentation's resolution
+    masks = decomposition.upsample_masks(out["masks"][0], pool)         # at the segmentation's resolution
     aris.append(decomposition.fg_ari(seg, masks, eval_config.background_ids))
     ious.append(decomposition.matched_miou(seg, masks, eval_config.background_ids))
     frames = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, pool))
