@@ -133,6 +133,41 @@ def test_slot_initializer_shared_and_per_slot_means():
     savi.SlotInitializer(num_slots=4, slot_size=8, mean="random").init(jax.random.key(0), noise)
 
 
+def test_learned_queries_ignore_the_noise():
+  module = savi.SlotInitializer(num_slots=4, slot_size=8, mean="queries")
+  noise = jax.random.normal(jax.random.key(1), (2, 4, 8))
+  params = module.init(jax.random.key(0), noise)
+  slots = module.apply(params, noise)
+  np.testing.assert_array_equal(slots, module.apply(params, 5.0 * noise + 1.0))  # the same slots for any noise
+  np.testing.assert_array_equal(slots, jnp.broadcast_to(params["params"]["mean"], noise.shape))
+  assert float(jnp.std(slots, axis=1).min()) > 0.1                              # K distinct queries
+
+
+def test_last_iteration_gradient_is_one_iteration_from_the_detached_slots():
+  """gradient="last" computes the same slots as "full"; its gradients (params and initial slots) are those of a
+  single iteration started from the slots the first two iterations reached."""
+  keys = jax.random.split(jax.random.key(4), 4)
+  slots = jax.random.normal(keys[0], (2, 4, 16))
+  inputs = jax.random.normal(keys[1], (2, 20, 8))
+  weights = jax.random.normal(keys[2], (2, 4, 16))
+  full, last, two, one = (savi.SlotAttention(num_iterations=n, mlp_size=32, gradient=g)
+                          for n, g in ((3, "full"), (3, "last"), (2, "full"), (1, "full")))
+  params = full.init(keys[3], slots, inputs)
+
+  def grads(module, start):
+    return jax.grad(lambda p, s: jnp.sum(weights * module.apply(p, s, inputs)), argnums=(0, 1))(params, start)
+
+  np.testing.assert_allclose(last.apply(params, slots, inputs), full.apply(params, slots, inputs), atol=1e-6)
+  reached = two.apply(params, slots, inputs)
+  (p_last, s_last), (p_one, s_one), (p_full, _) = grads(last, slots), grads(one, reached), grads(full, slots)
+  np.testing.assert_allclose(s_last, s_one, atol=1e-5)
+  for a, b in zip(jax.tree.leaves(p_last), jax.tree.leaves(p_one)):
+    np.testing.assert_allclose(a, b, atol=1e-5)
+  assert max(float(jnp.abs(a - b).max()) for a, b in zip(jax.tree.leaves(p_last), jax.tree.leaves(p_full))) > 1e-3
+  with pytest.raises(ValueError, match="full"):
+    savi.SlotAttention(gradient="implicit").init(keys[3], slots, inputs)
+
+
 def test_an_identity_initialised_predictor_starts_as_layernorm():
   slots = 3.0 * jax.random.normal(jax.random.key(2), (2, 5, 16)) + 1.0
   mean = slots.mean(-1, keepdims=True)

@@ -21,6 +21,11 @@ RUNS = {  # file -> legend
     "pooled_shared_3iters_clip1.json": "32x32, shared, 3 iterations, 48 single frames",
     "pooled_predictor_identity_init.json": "32x32, per-slot, predictor starting as LayerNorm",
     "probe_single_frames_b16.json": "probe.py: 16 single frames per step (6 val episodes x 12 frames)",
+    "probe_3iters_last_gradient.json": "probe, 16 frames: 3 iterations, last-iteration gradient",
+    "probe_queries.json": "probe, 16 frames: learned queries (no noise)",
+    "probe_queries_3iters_last_gradient.json": "probe, 16 frames: queries + 3 iterations + last gradient",
+    "probe_queries_3iters_last_clips2_idinit.json": "probe, 8 clips x 2: as above + LayerNorm predictor",
+    "small_v5.json": "the :small now (queries, 3 it., last gradient, 8 clips x 2), launch.py",
 }
 
 

@@ -40,6 +40,18 @@ def load():
   return d["image"], d["lengths"], d["val_image"], d["val_seg"]
 
 
+def save(prefix, params, frames, labels, seg):
+  """Writes PREFIX.msgpack (the params) and PREFIX.png: frames, argmax slot masks and segmentation, a row each."""
+  import flax.serialization  # pylint: disable=import-outside-toplevel
+  import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
+  with open(prefix + ".msgpack", "wb") as f:
+    f.write(flax.serialization.to_bytes(jax.device_get(params)))
+  palette = np.random.default_rng(0).integers(0, 256, (32, 3), dtype=np.uint8)
+  rows = [np.concatenate(list(frames), axis=1), np.concatenate(list(palette[labels]), axis=1),
+          np.concatenate(list(palette[16 + seg]), axis=1)]
+  imageio.imwrite(prefix + ".png", np.kron(np.concatenate(rows, axis=0), np.ones((3, 3, 1), np.uint8)))
+
+
 def main(steps, overrides):
   image, lengths, val_image, val_seg = load()
   config = common.get_config("push", "savi", "small")
@@ -61,6 +73,8 @@ def main(steps, overrides):
       out = jax.device_get(comp.eval_video(state["params"], val_image[:n, :frames]))
       masks = decomposition.upsample_masks(out["masks"], pool)
       ari = np.mean([decomposition.fg_ari(val_seg[i, :frames], masks[i]) for i in range(n)])
+      if os.environ.get("SAVE"):                      # a path prefix: params and argmax masks at every evaluation
+        save(os.environ["SAVE"], state["params"], val_image[:4, 0], masks[:4, 0].argmax(axis=1), val_seg[:4, 0])
       print(f"step {step}: loss {np.mean(losses[-50:]):.4f}  val FG-ARI {ari:.3f}  "
             f"max-over-slots mask {masks.max(axis=2).mean():.3f}  {time.time() - start:.0f} s", flush=True)
   params = state["params"]

@@ -53,6 +53,8 @@ class SlotInitializer(nn.Module):
   mean="shared": one mean [D] for all slots, so only the noise tells the slots apart (the Slot Attention paper's
   initialisation). mean="per_slot": a learned mean per slot [K, D], so the first frame's slots start from K
   distinct learned points rather than from noise around one point. The log-scale [D] is shared.
+  mean="queries": K learned vectors and no noise at all (learned queries): every episode starts from the same
+  slots, so a slot can come to stand for a part of the scene that is always there (the robot, the table).
   """
   num_slots: int
   slot_size: int
@@ -61,10 +63,12 @@ class SlotInitializer(nn.Module):
   @nn.compact
   def __call__(self, noise: jnp.ndarray) -> jnp.ndarray:
     """noise [..., K, D] standard normal -> slots [..., K, D] = mean + exp(log_scale) * noise."""
-    if self.mean not in ("shared", "per_slot"):
-      raise ValueError(f"unknown slot initialisation mean {self.mean!r}; use 'shared' or 'per_slot'.")
+    if self.mean not in ("shared", "per_slot", "queries"):
+      raise ValueError(f"unknown slot initialisation mean {self.mean!r}; use 'shared', 'per_slot' or 'queries'.")
     shape = (self.slot_size,) if self.mean == "shared" else (self.num_slots, self.slot_size)
     mean = self.param("mean", nn.initializers.normal(1.0), shape)
+    if self.mean == "queries":
+      return jnp.broadcast_to(mean, noise.shape)
     log_scale = self.param("log_scale", nn.initializers.zeros, (self.slot_size,))
     return mean + jnp.exp(log_scale) * noise
 
@@ -73,15 +77,22 @@ class SlotAttention(nn.Module):
   """Iterative slot attention: attention normalised over the slots (they compete for each input), a weighted mean
   of the values per slot, a GRU update and a residual MLP.
 
+  gradient="full": back-propagation runs through every iteration. gradient="last": the first-order implicit
+  gradient (the iterations approximate a fixed point): all but the last iteration run under stop_gradient, and the
+  initial slots get the last iteration's gradient straight through (slots' = sg(slots) + init - sg(init)), so the
+  learned initial slots (and SAVi's predictor) still train; the backward pass is one iteration long.
   slots [B, K, D], inputs [B, N, F] -> slots [B, K, D]; equivariant to permutations of the K slots.
   """
   num_iterations: int = 2
   mlp_size: int = 256
   epsilon: float = 1e-8
+  gradient: str = "full"
 
   @nn.compact
   def __call__(self, slots: jnp.ndarray, inputs: jnp.ndarray) -> jnp.ndarray:
-    slot_size = slots.shape[-1]
+    if self.gradient not in ("full", "last"):
+      raise ValueError(f"unknown slot-attention gradient {self.gradient!r}; use 'full' or 'last'.")
+    slot_size, init = slots.shape[-1], slots
     inputs = nn.LayerNorm(name="norm_inputs")(inputs)
     keys = nn.Dense(slot_size, use_bias=False, name="key")(inputs)        # [B, N, D]
     values = nn.Dense(slot_size, use_bias=False, name="value")(inputs)    # [B, N, D]
@@ -89,7 +100,9 @@ class SlotAttention(nn.Module):
     norm_slots = nn.LayerNorm(name="norm_slots")
     gru = nn.GRUCell(slot_size, name="gru")
     mlp = layers.MLP(self.mlp_size, slot_size, layernorm=True, residual=True, name="mlp")
-    for _ in range(self.num_iterations):
+    for i in range(self.num_iterations):
+      if self.gradient == "last" and i == self.num_iterations - 1 and i > 0:
+        slots = jax.lax.stop_gradient(slots) + init - jax.lax.stop_gradient(init)
       queries = query_dense(norm_slots(slots)) / math.sqrt(slot_size)     # [B, K, D]
       logits = jnp.einsum("bkd,bnd->bkn", queries, keys)                  # [B, K, N]
       attention = jax.nn.softmax(logits, axis=1)                          # over the slots
@@ -111,9 +124,10 @@ class Processor(nn.Module):
   predictor_heads: int
   predictor_mlp_size: int
   predictor_identity_init: bool = False
+  gradient: str = "full"
 
   def setup(self):
-    self.corrector = SlotAttention(self.num_iterations, self.slot_mlp_size)
+    self.corrector = SlotAttention(self.num_iterations, self.slot_mlp_size, gradient=self.gradient)
     self.predictor = layers.TransformerBlock(self.predictor_heads, self.predictor_mlp_size, self.predictor_identity_init)
 
   def __call__(self, predicted: jnp.ndarray, features: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
@@ -207,6 +221,7 @@ class SAVi(nn.Module):
   slot_size: int = 128
   init_mean: str = "shared"
   num_iterations: int = 2
+  slot_gradient: str = "full"
   slot_mlp_size: int = 256
   encoder_features: Sequence[int] = (32, 32, 32, 32, 32)
   encoder_kernel_size: int = 5
@@ -228,7 +243,7 @@ class SAVi(nn.Module):
                               self.encoder_mlp_size, self.feature_size)
     self.initializer = SlotInitializer(self.num_slots, self.slot_size, self.init_mean)
     self.processor = Processor(self.num_iterations, self.slot_mlp_size, self.predictor_heads,
-                               self.predictor_mlp_size, self.predictor_identity_init)
+                               self.predictor_mlp_size, self.predictor_identity_init, self.slot_gradient)
     self.decoder = SpatialBroadcastDecoder(self.decoder_grid_size, self.decoder_features, self.decoder_kernel_size,
                                            self.decoder_strides, self.decoder_upsampling)
 
@@ -293,7 +308,7 @@ def build_model(savi_config, resolution: int) -> SAVi:
   c = savi_config
   return SAVi(
       num_slots=int(c.num_slots), slot_size=int(c.slot_size), init_mean=str(c.get("init_mean", "shared")),
-      num_iterations=int(c.num_iterations),
+      num_iterations=int(c.num_iterations), slot_gradient=str(c.get("slot_gradient", "full")),
       slot_mlp_size=int(c.slot_mlp_size),
       encoder_features=tuple(c.encoder.features), encoder_kernel_size=int(c.encoder.kernel_size),
       encoder_strides=tuple(c.encoder.strides), encoder_mlp_size=int(c.encoder.mlp_size),
