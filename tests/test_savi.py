@@ -282,6 +282,11 @@ def test_bad_resolution_is_a_user_error():
   config.env.resolution = 25
   with pytest.raises(UserError, match="grid_size"):
     pretrain.validate_config(config)
+  for field, bad in (("init_mean", "random"), ("slot_gradient", "implicit")):
+    broken = tiny_config()
+    broken.savi[field] = bad
+    with pytest.raises(UserError, match=f"savi.{field}='{bad}' is not one of"):
+      pretrain.validate_config(broken)
 
 
 def test_pool_frames_known_values():

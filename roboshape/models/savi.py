@@ -23,6 +23,9 @@ import jax.numpy as jnp
 
 from roboshape.models import layers
 
+INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
+SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
+
 
 class CNNEncoder(nn.Module):
   """Convolutions with ReLU, a position embedding, then a per-location MLP.
@@ -48,7 +51,7 @@ class CNNEncoder(nn.Module):
 
 
 class SlotInitializer(nn.Module):
-  """K slots drawn from learned diagonal Gaussians.
+  """K first-frame slots: drawn from learned diagonal Gaussians, or K learned vectors.
 
   mean="shared": one mean [D] for all slots, so only the noise tells the slots apart (the Slot Attention paper's
   initialisation). mean="per_slot": a learned mean per slot [K, D], so the first frame's slots start from K
@@ -62,9 +65,9 @@ class SlotInitializer(nn.Module):
 
   @nn.compact
   def __call__(self, noise: jnp.ndarray) -> jnp.ndarray:
-    """noise [..., K, D] standard normal -> slots [..., K, D] = mean + exp(log_scale) * noise."""
-    if self.mean not in ("shared", "per_slot", "queries"):
-      raise ValueError(f"unknown slot initialisation mean {self.mean!r}; use 'shared', 'per_slot' or 'queries'.")
+    """noise [..., K, D] standard normal -> slots [..., K, D] = mean + exp(log_scale) * noise (= mean, "queries")."""
+    if self.mean not in INIT_MEANS:
+      raise ValueError(f"unknown slot initialisation mean {self.mean!r}; use one of {INIT_MEANS}.")
     shape = (self.slot_size,) if self.mean == "shared" else (self.num_slots, self.slot_size)
     mean = self.param("mean", nn.initializers.normal(1.0), shape)
     if self.mean == "queries":
@@ -90,8 +93,8 @@ class SlotAttention(nn.Module):
 
   @nn.compact
   def __call__(self, slots: jnp.ndarray, inputs: jnp.ndarray) -> jnp.ndarray:
-    if self.gradient not in ("full", "last"):
-      raise ValueError(f"unknown slot-attention gradient {self.gradient!r}; use 'full' or 'last'.")
+    if self.gradient not in SLOT_GRADIENTS:
+      raise ValueError(f"unknown slot-attention gradient {self.gradient!r}; use one of {SLOT_GRADIENTS}.")
     slot_size, init = slots.shape[-1], slots
     inputs = nn.LayerNorm(name="norm_inputs")(inputs)
     keys = nn.Dense(slot_size, use_bias=False, name="key")(inputs)        # [B, N, D]

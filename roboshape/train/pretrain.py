@@ -49,6 +49,10 @@ def validate_config(config) -> None:
   if len(c.decoder.features) != len(c.decoder.strides):
     raise UserError(f"savi.decoder.features ({len(c.decoder.features)} layers) and savi.decoder.strides "
                     f"({len(c.decoder.strides)}) must have the same length.")
+  for field, value, choices in (("init_mean", c.get("init_mean", "shared"), savi.INIT_MEANS),
+                                ("slot_gradient", c.get("slot_gradient", "full"), savi.SLOT_GRADIENTS)):
+    if value not in choices:
+      raise UserError(f"savi.{field}={value!r} is not one of {choices}; set --config.savi.{field} to one of them.")
   pool = savi.input_pool(c)
   if pool < 1 or config.env.resolution % pool:
     raise UserError(f"savi.pool={pool} must be a positive divisor of env.resolution={config.env.resolution}.")
