@@ -25,7 +25,11 @@ RUNS = {  # file -> legend
     "probe_queries.json": "probe, 16 frames: learned queries (no noise)",
     "probe_queries_3iters_last_gradient.json": "probe, 16 frames: queries + 3 iterations + last gradient",
     "probe_queries_3iters_last_clips2_idinit.json": "probe, 8 clips x 2: as above + LayerNorm predictor",
-    "small_v5.json": "the :small now (queries, 3 it., last gradient, 8 clips x 2), launch.py",
+    "small_v5.json": "queries, 3 it., last gradient, 8 clips x 2, launch.py (fifth session)",
+    "probe_slot_colour.json": "probe, 8 clips x 2: as above + one colour per slot",
+    "probe_slot_colour_9slots.json": "probe, 8 clips x 2: as above + one colour per slot, 9 slots",
+    "small_v6_clips2.json": "one colour per slot, 9 slots, 8 clips x 2, launch.py",
+    "small_v7.json": "the :small now (one colour per slot, 9 slots, 4 clips x 6), launch.py",
 }
 
 

@@ -25,6 +25,7 @@ from roboshape.models import layers
 
 INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
+DECODER_RGBS = ("spatial", "slot")             # SpatialBroadcastDecoder(rgb=...)
 
 
 class CNNEncoder(nn.Module):
@@ -180,6 +181,7 @@ class SpatialBroadcastDecoder(nn.Module):
   kernel_size: int = 5
   strides: Sequence[int] = (2, 2, 2, 1)
   upsampling: str = "subpixel"
+  rgb: str = "spatial"
 
   @nn.compact
   def __call__(self, slots: jnp.ndarray) -> Dict[str, jnp.ndarray]:
@@ -189,9 +191,16 @@ class SpatialBroadcastDecoder(nn.Module):
     x = layers.PositionEmbedding(name="position")(x)
     for i, (channels, stride) in enumerate(zip(self.features, self.strides)):
       x = nn.relu(Upsample(channels, self.kernel_size, stride, self.upsampling, name=f"up{i}")(x))
-    x = nn.Dense(4, name="output")(x)                                      # [B*K, H, W, 4]
-    x = x.reshape(batch, num_slots, *x.shape[1:])
-    rgb, alpha = x[..., :3], x[..., 3]
+    if self.rgb == "spatial":
+      x = nn.Dense(4, name="output")(x)                                    # [B*K, H, W, 4]
+      x = x.reshape(batch, num_slots, *x.shape[1:])
+      rgb, alpha = x[..., :3], x[..., 3]
+    elif self.rgb == "slot":
+      alpha = nn.Dense(1, name="output")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
+      colour = nn.Dense(3, name="colour")(slots)                           # [B, K, 3]
+      rgb = jnp.broadcast_to(colour[:, :, None, None, :], (*alpha.shape, 3))
+    else:
+      raise ValueError(f"unknown decoder rgb {self.rgb!r}; use one of {DECODER_RGBS}.")
     masks = jax.nn.softmax(alpha, axis=1)                                  # [B, K, H, W], sums to 1 over K
     recon = jnp.sum(masks[..., None] * rgb, axis=1)                        # [B, H, W, 3]
     return {"recon": recon, "rgb": rgb, "masks": masks}
@@ -239,6 +248,7 @@ class SAVi(nn.Module):
   decoder_kernel_size: int = 5
   decoder_strides: Sequence[int] = (2, 2, 2, 1)
   decoder_upsampling: str = "subpixel"
+  decoder_rgb: str = "spatial"
   input_pool: int = 1
 
   def setup(self):
@@ -248,7 +258,7 @@ class SAVi(nn.Module):
     self.processor = Processor(self.num_iterations, self.slot_mlp_size, self.predictor_heads,
                                self.predictor_mlp_size, self.predictor_identity_init, self.slot_gradient)
     self.decoder = SpatialBroadcastDecoder(self.decoder_grid_size, self.decoder_features, self.decoder_kernel_size,
-                                           self.decoder_strides, self.decoder_upsampling)
+                                           self.decoder_strides, self.decoder_upsampling, self.decoder_rgb)
 
   @property
   def output_resolution(self) -> int:
@@ -320,4 +330,5 @@ def build_model(savi_config, resolution: int) -> SAVi:
       predictor_identity_init=bool(c.predictor.get("identity_init", False)),
       decoder_grid_size=decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
-      decoder_upsampling=str(c.decoder.upsampling), input_pool=input_pool(c))
+      decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.get("rgb", "spatial")),
+      input_pool=input_pool(c))
