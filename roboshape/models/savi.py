@@ -25,7 +25,7 @@ from roboshape.models import layers
 
 INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
-DECODER_RGBS = ("spatial", "slot")             # SpatialBroadcastDecoder(rgb=...)
+DECODER_RGBS = ("spatial", "slot")              # SpatialBroadcastDecoder(rgb=...)
 
 
 class CNNEncoder(nn.Module):
@@ -171,7 +171,9 @@ class SpatialBroadcastDecoder(nn.Module):
   """Decodes every slot on its own into RGB and an alpha logit; masks are the softmax of the alphas over slots.
 
   A learned position embedding is added to each slot broadcast over a grid_size x grid_size grid, then each layer
-  upsamples by its stride (see Upsample), with ReLU; a final 1x1 layer gives RGB and alpha.
+  upsamples by its stride (see Upsample), with ReLU; a final 1x1 layer gives RGB and alpha (rgb="spatial"), or
+  alpha only, with each slot painted in one colour, a linear map of the slot (rgb="slot": a slot can then explain
+  only a region of one colour, which pushes the masks to follow colours).
 
   slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W]),
   with H = W = grid_size * prod(strides).
