@@ -87,6 +87,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
       # first frame's slots: "shared" (one learned mean + noise), "per_slot" (K means + noise), "queries" (K, no noise)
       init_mean="queries" if variant == "small" else "shared",
       num_iterations=_pick(variant, 2, 3, 2),  # slot-attention iterations per frame
+      first_frame_iterations=0,  # on the first frame, from the initial slots (0: num_iterations)
       slot_gradient="last" if variant == "small" else "full",  # "full": backprop through every iteration; "last":
                                                                # only through the last (first-order implicit gradient)
       slot_mlp_size=_pick(variant, 256, 256, 64),

@@ -1,5 +1,6 @@
 """SAVi (roboshape/models/savi.py, roboshape/train/pretrain.py) and the decomposition metrics, on synthetic clips of
 moving coloured squares whose segmentation ids are known: 16x16 frames, K = 3 slots of size 16."""
+import functools
 import itertools
 import os
 
@@ -291,6 +292,56 @@ def test_a_slot_colour_decoder_paints_each_slot_one_colour():
     savi.SpatialBroadcastDecoder(grid_size=4, features=(8,), strides=(2,), rgb="pixel").init(jax.random.key(6), slots)
 
 
+def test_a_shaded_slot_decoder_keeps_each_slot_one_hue():
+  """rgb="slot_shaded": the slot's colour times a per-pixel gain in (0, 2); the gain starts at 1 (the "slot" mode)."""
+  slots = jax.random.normal(jax.random.key(5), (2, 3, 16))
+  decoder = savi.SpatialBroadcastDecoder(grid_size=4, features=(8, 8), kernel_size=3, strides=(2, 1), rgb="slot_shaded")
+  params = decoder.init(jax.random.key(6), slots)
+  flat = savi.SpatialBroadcastDecoder(grid_size=4, features=(8, 8), kernel_size=3, strides=(2, 1), rgb="slot")
+  plain = {"params": {k: v for k, v in params["params"].items() if k != "shade"}}
+  np.testing.assert_allclose(decoder.apply(params, slots)["rgb"], flat.apply(plain, slots)["rgb"], atol=1e-6)
+  shade = dict(params["params"]["shade"], kernel=jax.random.normal(jax.random.key(7), (8, 1)))
+  out = decoder.apply({"params": dict(params["params"], shade=shade)}, slots)
+  colour = params["params"]["colour"]
+  colour = (slots @ colour["kernel"] + colour["bias"])[:, :, None, None]    # [B, K, 1, 1, 3]
+  gain = out["rgb"] / colour
+  np.testing.assert_allclose(gain[..., 1:], gain[..., :1].repeat(2, axis=-1), rtol=1e-4)   # one gain per pixel
+  assert float(gain.min()) > 0.0 and float(gain.max()) < 2.0 and float(jnp.std(gain[..., 0], axis=(2, 3)).min()) > 0.01
+  np.testing.assert_allclose(out["recon"], jnp.einsum("bkhw,bkhwc->bhwc", out["masks"], out["rgb"]), atol=1e-5)
+
+
+def test_first_frame_iterations_apply_to_the_first_frame_only():
+  """first_frame_iterations=3, num_iterations=1: frame 0 gets three iterations from the initial slots, later frames
+  one from the predictor; the step form (first=True on frame 0) and the frozen encoder's batched state agree."""
+  model = savi.SAVi(num_slots=3, slot_size=16, num_iterations=1, first_frame_iterations=3, encoder_features=(8, 8),
+                    encoder_strides=(1, 1), decoder_features=(8,), decoder_strides=(2,), decoder_grid_size=8)
+  video = jax.random.uniform(jax.random.key(0), (2, 3, 16, 16, 3))
+  init = jax.random.normal(jax.random.key(3), (2, 3, 16))
+  params = model.init({"params": jax.random.key(1), "slots": jax.random.key(2)}, video)["params"]
+  out = model.apply({"params": params}, video, init_slots=init)
+  same = model.clone(first_frame_iterations=0).apply({"params": params}, video, init_slots=init)
+  three = model.clone(num_iterations=3, first_frame_iterations=0).apply({"params": params}, video[:, :1],
+                                                                       init_slots=init)
+  np.testing.assert_allclose(out["slots"][:, 0], three["slots"][:, 0], atol=1e-5)
+  assert float(jnp.abs(out["slots"][:, 0] - same["slots"][:, 0]).max()) > 1e-3
+  state = init
+  for t in range(3):
+    slots, state = model.apply({"params": params}, video[:, t], state, first=t == 0, method=savi.SAVi.step)
+    np.testing.assert_allclose(slots, out["slots"][:, t], atol=1e-5)
+  # the frozen encoder's step: episode 0 starts at this frame, episode 1 is at its frame 1
+  frozen = jax.jit(functools.partial(pretrain._frozen_step, model))  # pylint: disable=protected-access
+  carried = model.apply({"params": params}, video[1:, :1], init_slots=init[1:])["predicted"][:, 0]
+  state = {"slots": jnp.stack([init[0], carried[0]]), "first": jnp.array([True, False])}
+  frames = jnp.round(video[:, 1] * 255).astype(jnp.uint8)
+  slots, nxt = frozen(params, state, frames)
+  float_frames = frames.astype(jnp.float32) / 255.0
+  np.testing.assert_allclose(slots[0], model.apply({"params": params}, float_frames[:1], init[:1], first=True,
+                                                   method=savi.SAVi.step)[0][0], atol=1e-5)
+  np.testing.assert_allclose(slots[1], model.apply({"params": params}, float_frames[1:], carried, first=False,
+                                                   method=savi.SAVi.step)[0][0], atol=1e-5)
+  assert not bool(nxt["first"].any())
+
+
 def test_bad_resolution_is_a_user_error():
   config = tiny_config()
   config.env.resolution = 24                     # 24 = 12 * 2: the automatic grid fits
@@ -302,6 +353,11 @@ def test_bad_resolution_is_a_user_error():
     broken = tiny_config()
     common.override(broken, f"savi.{field}={bad!r}")
     with pytest.raises(UserError, match=f"savi.{field}='{bad}' is not one of"):
+      pretrain.validate_config(broken)
+  for field in ("num_iterations=0", "first_frame_iterations=-1"):
+    broken = tiny_config()
+    common.override(broken, f"savi.{field}")
+    with pytest.raises(UserError, match="must be >= 1"):
       pretrain.validate_config(broken)
 
 

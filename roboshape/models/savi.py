@@ -25,7 +25,7 @@ from roboshape.models import layers
 
 INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
-DECODER_RGBS = ("spatial", "slot")              # SpatialBroadcastDecoder(rgb=...)
+DECODER_RGBS = ("spatial", "slot", "slot_shaded")  # SpatialBroadcastDecoder(rgb=...)
 
 
 class CNNEncoder(nn.Module):
@@ -93,7 +93,9 @@ class SlotAttention(nn.Module):
   gradient: str = "full"
 
   @nn.compact
-  def __call__(self, slots: jnp.ndarray, inputs: jnp.ndarray) -> jnp.ndarray:
+  def __call__(self, slots: jnp.ndarray, inputs: jnp.ndarray, num_iterations: Optional[int] = None) -> jnp.ndarray:
+    """num_iterations (static): this call's number of iterations, the module's own when None; the parameters are
+    the same whatever the number."""
     if self.gradient not in SLOT_GRADIENTS:
       raise ValueError(f"unknown slot-attention gradient {self.gradient!r}; use one of {SLOT_GRADIENTS}.")
     slot_size, init = slots.shape[-1], slots
@@ -104,8 +106,9 @@ class SlotAttention(nn.Module):
     norm_slots = nn.LayerNorm(name="norm_slots")
     gru = nn.GRUCell(slot_size, name="gru")
     mlp = layers.MLP(self.mlp_size, slot_size, layernorm=True, residual=True, name="mlp")
-    for i in range(self.num_iterations):
-      if self.gradient == "last" and i == self.num_iterations - 1 and i > 0:
+    iterations = self.num_iterations if num_iterations is None else num_iterations
+    for i in range(iterations):
+      if self.gradient == "last" and i == iterations - 1 and i > 0:
         slots = jax.lax.stop_gradient(slots) + init - jax.lax.stop_gradient(init)
       queries = query_dense(norm_slots(slots)) / math.sqrt(slot_size)     # [B, K, D]
       logits = jnp.einsum("bkd,bnd->bkn", queries, keys)                  # [B, K, N]
@@ -134,8 +137,9 @@ class Processor(nn.Module):
     self.corrector = SlotAttention(self.num_iterations, self.slot_mlp_size, gradient=self.gradient)
     self.predictor = layers.TransformerBlock(self.predictor_heads, self.predictor_mlp_size, self.predictor_identity_init)
 
-  def __call__(self, predicted: jnp.ndarray, features: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
-    corrected = self.corrector(predicted, features)
+  def __call__(self, predicted: jnp.ndarray, features: jnp.ndarray,
+               num_iterations: Optional[int] = None) -> Tuple[jnp.ndarray, jnp.ndarray]:
+    corrected = self.corrector(predicted, features, num_iterations)
     return corrected, self.predictor(corrected)
 
 
@@ -173,7 +177,9 @@ class SpatialBroadcastDecoder(nn.Module):
   A learned position embedding is added to each slot broadcast over a grid_size x grid_size grid, then each layer
   upsamples by its stride (see Upsample), with ReLU; a final 1x1 layer gives RGB and alpha (rgb="spatial"), or
   alpha only, with each slot painted in one colour, a linear map of the slot (rgb="slot": a slot can then explain
-  only a region of one colour, which pushes the masks to follow colours).
+  only a region of one colour, which pushes the masks to follow colours), or that colour times a per-pixel
+  brightness gain in (0, 2) from the CNN (rgb="slot_shaded": one hue with its shading, e.g. a white robot with dark
+  joints; the gain starts at 1 everywhere, so the mode starts as "slot").
 
   slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W]),
   with H = W = grid_size * prod(strides).
@@ -197,10 +203,13 @@ class SpatialBroadcastDecoder(nn.Module):
       x = nn.Dense(4, name="output")(x)                                    # [B*K, H, W, 4]
       x = x.reshape(batch, num_slots, *x.shape[1:])
       rgb, alpha = x[..., :3], x[..., 3]
-    elif self.rgb == "slot":
+    elif self.rgb in ("slot", "slot_shaded"):
       alpha = nn.Dense(1, name="output")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
       colour = nn.Dense(3, name="colour")(slots)                           # [B, K, 3]
       rgb = jnp.broadcast_to(colour[:, :, None, None, :], (*alpha.shape, 3))
+      if self.rgb == "slot_shaded":
+        shade = nn.Dense(1, kernel_init=nn.initializers.zeros, name="shade")(x)
+        rgb = rgb * 2.0 * jax.nn.sigmoid(shade.reshape(*alpha.shape, 1))   # [B, K, H, W, 3]
     else:
       raise ValueError(f"unknown decoder rgb {self.rgb!r}; use one of {DECODER_RGBS}.")
     masks = jax.nn.softmax(alpha, axis=1)                                  # [B, K, H, W], sums to 1 over K
@@ -228,6 +237,8 @@ class SAVi(nn.Module):
   """The SAVi video model: CNN encoder, slot initializer, corrector + predictor scanned over time, decoder.
 
   Frames are float in [0, 1]. The model's rng stream "slots" draws the initial slots when none are given.
+  Slot attention runs first_frame_iterations times on the first frame (num_iterations when 0), from the initial
+  slots, and num_iterations times on every later frame, from the predictor's slots.
   With input_pool = f > 1 the frames are average-pooled by f before the encoder and the decoder reconstructs the
   pooled frames (a cheaper model of the same frames; the masks are 1/f of the frames' resolution).
   """
@@ -235,6 +246,7 @@ class SAVi(nn.Module):
   slot_size: int = 128
   init_mean: str = "shared"
   num_iterations: int = 2
+  first_frame_iterations: int = 0
   slot_gradient: str = "full"
   slot_mlp_size: int = 256
   encoder_features: Sequence[int] = (32, 32, 32, 32, 32)
@@ -274,9 +286,17 @@ class SAVi(nn.Module):
     """slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W])."""
     return self.decoder(slots)
 
-  def step(self, frame: jnp.ndarray, state: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
-    """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state)."""
-    return self.processor(state, self.encoder(pool_frames(frame, self.input_pool)))
+  @property
+  def iterations_first(self) -> int:
+    """Slot-attention iterations on the first frame of a video."""
+    return self.first_frame_iterations or self.num_iterations
+
+  def step(self, frame: jnp.ndarray, state: jnp.ndarray, first: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
+    """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state).
+
+    first (static): the frame is a video's first, `state` its initial slots (first_frame_iterations apply)."""
+    features = self.encoder(pool_frames(frame, self.input_pool))
+    return self.processor(state, features, self.iterations_first if first else None)
 
   def __call__(self, video: jnp.ndarray, init_slots: Optional[jnp.ndarray] = None,
                decode: bool = True) -> Dict[str, jnp.ndarray]:
@@ -298,7 +318,15 @@ class SAVi(nn.Module):
 
     scan = nn.scan(body, variable_broadcast="params", variable_axes={"intermediates": 1}, split_rngs={"params": False},
                    in_axes=1, out_axes=1)
-    _, (slots, predicted) = scan(self.processor, init_slots, features)
+    if self.iterations_first == self.num_iterations:
+      _, (slots, predicted) = scan(self.processor, init_slots, features)
+    else:                                       # the first frame on its own, with its own number of iterations
+      corrected, carry = self.processor(init_slots, features[:, 0], self.iterations_first)
+      slots, predicted = corrected[:, None], carry[:, None]
+      if features.shape[1] > 1:
+        _, (rest, rest_predicted) = scan(self.processor, carry, features[:, 1:])
+        slots = jnp.concatenate([slots, rest], axis=1)
+        predicted = jnp.concatenate([predicted, rest_predicted], axis=1)
     out = {"slots": slots, "predicted": predicted}
     if decode:
       decoded = self.decoder(_fold_time(slots))
@@ -323,7 +351,8 @@ def build_model(savi_config, resolution: int) -> SAVi:
   c = savi_config
   return SAVi(
       num_slots=int(c.num_slots), slot_size=int(c.slot_size), init_mean=str(c.get("init_mean", "shared")),
-      num_iterations=int(c.num_iterations), slot_gradient=str(c.get("slot_gradient", "full")),
+      num_iterations=int(c.num_iterations), first_frame_iterations=int(c.get("first_frame_iterations", 0)),
+      slot_gradient=str(c.get("slot_gradient", "full")),
       slot_mlp_size=int(c.slot_mlp_size),
       encoder_features=tuple(c.encoder.features), encoder_kernel_size=int(c.encoder.kernel_size),
       encoder_strides=tuple(c.encoder.strides), encoder_mlp_size=int(c.encoder.mlp_size),

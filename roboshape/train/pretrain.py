@@ -54,6 +54,9 @@ def validate_config(config) -> None:
                                 ("decoder.rgb", c.decoder.get("rgb", "spatial"), savi.DECODER_RGBS)):
     if value not in choices:
       raise UserError(f"savi.{field}={value!r} is not one of {choices}; set --config.savi.{field} to one of them.")
+  if int(c.num_iterations) < 1 or int(c.get("first_frame_iterations", 0)) < 0:
+    raise UserError(f"savi.num_iterations={c.num_iterations} must be >= 1 and savi.first_frame_iterations="
+                    f"{c.get('first_frame_iterations', 0)} >= 0 (0: as many as num_iterations).")
   pool = savi.input_pool(c)
   if pool < 1 or config.env.resolution % pool:
     raise UserError(f"savi.pool={pool} must be a positive divisor of env.resolution={config.env.resolution}.")
@@ -291,15 +294,29 @@ def run(config, workdir: str) -> None:
 
 
 def _frozen_step(model: savi.SAVi, params, state, frames):
-  """FrozenEncoder step: (params, predicted slots [B, K, D], frames uint8 [B, H, W, 3]) -> (slots, next state)."""
-  return model.apply({"params": params}, _to_float(frames), state, method=savi.SAVi.step)
+  """FrozenEncoder step: (params, state, frames uint8 [B, H, W, 3]) -> (slots [B, K, D], next state).
+
+  state: dict(slots=the predicted slots [B, K, D], first=bool [B], True where the frame starts an episode). A model
+  with its own number of first-frame iterations runs them, only in a batch that has a first frame in it.
+  """
+  frames = _to_float(frames)
+  apply = functools.partial(model.apply, {"params": params}, frames, state["slots"], method=savi.SAVi.step)
+  later = apply(first=False)
+  if model.iterations_first != model.num_iterations:
+    first = state["first"][:, None, None]
+    def with_first(later):
+      return jax.tree.map(lambda a, b: jnp.where(first, a, b), apply(first=True), later)
+    later = jax.lax.cond(jnp.any(state["first"]), with_first, lambda later: later, later)
+  slots, predicted = later
+  return slots, {"slots": predicted, "first": jnp.zeros_like(state["first"])}
 
 
 def load_encoder(workdir: str) -> FrozenEncoder:
   """The SAVi encoder trained in `workdir` (its latest checkpoint), frozen: tokens are a frame's K slots [B, K, D].
 
-  The state is the predicted slots for the next frame; `init_state(B)` gives the learned-Gaussian slots drawn with
-  a fixed key, so encoding is deterministic and the same for every episode of a batch.
+  The state is dict(slots=the predicted slots for the next frame [B, K, D], first=bool [B]); `init_state(B)` gives
+  the learned-Gaussian slots drawn with a fixed key (so encoding is deterministic and the same for every episode of
+  a batch) and first=True.
   """
   from roboshape import stages  # pylint: disable=import-outside-toplevel
   config = stages.load_config(workdir)
@@ -318,6 +335,7 @@ def load_encoder(workdir: str) -> FrozenEncoder:
   init = comp.initial_slots(params, 1)[0]
   return FrozenEncoder(
       name="savi", params=params, step=functools.partial(_frozen_step, comp.model),
-      init_state=lambda batch_size: jnp.broadcast_to(init, (batch_size, *init.shape)),
+      init_state=lambda batch_size: {"slots": jnp.broadcast_to(init, (batch_size, *init.shape)),
+                                     "first": jnp.ones((batch_size,), bool)},
       num_tokens=comp.model.num_slots, token_dim=comp.model.slot_size,
       identity=f"savi:{os.path.abspath(directory)}@{step}")
