@@ -109,7 +109,8 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           kernel_size=5 if paper else 3,
           strides=_pick(variant, (2, 2, 2, 1), (2, 2), (2, 2, 2)),
           rgb="slot" if variant == "small" else "spatial",  # "spatial": RGB per pixel from the CNN; "slot": one
-                                                             # colour per slot (a Dense of the slot), masks spatial
+                                                             # colour per slot (a Dense of the slot), masks spatial;
+                                                             # "slot_shaded": that colour x a per-pixel gain (0, 2)
           upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
       )),
       train=ml_collections.ConfigDict(dict(
