@@ -15,7 +15,7 @@ from matplotlib import pyplot as plt  # pylint: disable=wrong-import-position
 HERE = os.path.dirname(os.path.abspath(__file__))
 RUNS = {  # file -> legend
     "small_64x64_shared.json": "64x64, shared init (the former :small)",
-    "small_pooled_per_slot.json": "32x32 pooled, per-slot init (the :small now)",
+    "small_pooled_per_slot.json": "32x32 pooled, per-slot init (the :small of the third session)",
     "pooled_lr1e-3.json": "32x32 pooled, per-slot init, lr 1e-3",
     "pooled_per_slot_3iters_clip2.json": "32x32, per-slot, 3 iterations, 24 clips x 2",
     "pooled_shared_3iters_clip1.json": "32x32, shared, 3 iterations, 48 single frames",
@@ -30,29 +30,35 @@ RUNS = {  # file -> legend
     "probe_slot_colour_9slots.json": "probe, 8 clips x 2: as above + one colour per slot, 9 slots",
     "small_v6_clips2.json": "one colour per slot, 9 slots, 8 clips x 2, launch.py",
     "small_v7.json": "the :small now (one colour per slot, 9 slots, 4 clips x 6), launch.py",
+    "small_v8_6slots_shaded.json": "6 slots, shaded colour per slot, 4 clips x 6, launch.py",
+    "small_v9_9slots_shaded.json": "9 slots, shaded colour per slot, 4 clips x 6, launch.py",
 }
 
 
 def main():
-  fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=130)
-  for name, label in RUNS.items():
+  fig, axes = plt.subplots(1, 2, figsize=(12, 6.4), dpi=130)
+  colours = plt.get_cmap("tab20")
+  for i, (name, label) in enumerate(RUNS.items()):
     with open(os.path.join(HERE, name)) as f:
       history = json.load(f)
     steps = [h["step"] for h in history]
-    axes[0].plot(steps, [h["fg_ari"] for h in history], marker="o", markersize=2.5, label=label)
+    style = dict(marker="o", markersize=2.5, color=colours(i % 20), linestyle="-" if i < 10 else "--", label=label,
+                 linewidth=2.2 if i >= len(RUNS) - 3 else 1.2)
+    axes[0].plot(steps, [h["fg_ari"] for h in history], **style)
     if "recon_mse" in history[0]:  # the probe records the training loss only
-      axes[1].plot(steps, [h["recon_mse"] for h in history], marker="o", markersize=2.5, label=label)
+      axes[1].plot(steps, [h["recon_mse"] for h in history], **style)
   axes[0].axhline(0.6, color="grey", linestyle="--", linewidth=1)
   axes[0].text(50, 0.56, "bar: FG-ARI 0.6", color="grey", fontsize=8)
-  axes[0].set_ylim(-0.1, 0.7)
+  axes[0].set_ylim(-0.15, 0.7)
   axes[0].set_ylabel("validation FG-ARI")
   axes[1].set_ylabel("validation reconstruction MSE")
+  axes[1].set_ylim(0.0, 0.08)
   for ax in axes:
     ax.set_xlabel("training step")
     ax.grid(alpha=0.3)
-  axes[0].legend(fontsize=6, loc="upper left")
+  fig.legend(*axes[0].get_legend_handles_labels(), fontsize=7, loc="lower center", ncol=2, frameon=False)
+  fig.subplots_adjust(bottom=0.36, top=0.92, wspace=0.22)
   fig.suptitle("SAVi on the :small push set (8 validation episodes x 24 frames), 2-core CPU")
-  fig.tight_layout()
   out = os.path.join(HERE, "fg_ari_curves.png")
   fig.savefig(out)
   print(out)
