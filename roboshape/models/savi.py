@@ -10,7 +10,7 @@ Gaussian.
   out = model.apply({"params": params}, video, rngs={"slots": key})   # video float [B, T, H, W, 3] in [0, 1]
   out["slots"] [B, T, K, D], out["recon"] [B, T, H, W, 3], out["masks"] [B, T, K, H, W], out["rgb"] [B, T, K, H, W, 3]
 
-  slots, state = model.apply({"params": params}, frame, state, method=SAVi.step)   # one frame of the same recursion
+  slots, state = model.apply({"params": params}, frame, state, first=t == 0, method=SAVi.step)   # one frame of it
 
 Defaults follow SAVi-S on 64x64 images: 32-channel 5x5 convolutions, slot size 128, an 8x8 broadcast grid.
 """
