@@ -28,20 +28,14 @@ from roboshape.data import reader
 from roboshape.eval import decomposition
 from roboshape.models import savi
 from roboshape.train import pretrain
-from roboshape.train.checkpoint import Checkpointer
 
 DATA = "runs/reproduce_small/data/push/roboshape_push/1.0.0"
 ROBOT = 2          # the robot's segmentation id; 0 and 1 (backdrop, table) are not scored
 
 
 def restore(workdir):
-  config = stages.load_config(workdir)
-  comp = pretrain.compiled(config)
-  ckpt = Checkpointer(os.path.join(pretrain.savi_dir(workdir), "checkpoints"))
-  like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), pretrain._clip_shape(config)))  # pylint: disable=protected-access
-  params = ckpt.restore(pretrain._with_sharding(like, comp.replicated), ckpt.latest_step())["params"]  # pylint: disable=protected-access
-  ckpt.close()
-  return comp, params
+  """The compiled model of WORKDIR's config and its latest SAVi parameters."""
+  return pretrain.compiled(stages.load_config(workdir)), pretrain.load_encoder(workdir).params
 
 
 def one_hot(labels, k):

@@ -291,12 +291,20 @@ class SAVi(nn.Module):
     """Slot-attention iterations on the first frame of a video."""
     return self.first_frame_iterations or self.num_iterations
 
+  def encode_frame(self, frame: jnp.ndarray) -> jnp.ndarray:
+    """frame [B, H, W, 3] in [0, 1] -> the encoder's features [B, N, F]."""
+    return self.encoder(pool_frames(frame, self.input_pool))
+
+  def correct(self, features: jnp.ndarray, state: jnp.ndarray,
+              first: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
+    """(features [B, N, F], predicted slots [B, K, D]) -> (slots [B, K, D], next state); `first` as in `step`."""
+    return self.processor(state, features, self.iterations_first if first else None)
+
   def step(self, frame: jnp.ndarray, state: jnp.ndarray, first: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
     """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state).
 
     first (static): the frame is a video's first, `state` its initial slots (first_frame_iterations apply)."""
-    features = self.encoder(pool_frames(frame, self.input_pool))
-    return self.processor(state, features, self.iterations_first if first else None)
+    return self.correct(self.encode_frame(frame), state, first)
 
   def __call__(self, video: jnp.ndarray, init_slots: Optional[jnp.ndarray] = None,
                decode: bool = True) -> Dict[str, jnp.ndarray]:

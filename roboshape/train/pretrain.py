@@ -297,10 +297,11 @@ def _frozen_step(model: savi.SAVi, params, state, frames):
   """FrozenEncoder step: (params, state, frames uint8 [B, H, W, 3]) -> (slots [B, K, D], next state).
 
   state: dict(slots=the predicted slots [B, K, D], first=bool [B], True where the frame starts an episode). A model
-  with its own number of first-frame iterations runs them, only in a batch that has a first frame in it.
+  with its own number of first-frame iterations runs them, only in a batch that has a first frame in it (on the
+  same encoder features).
   """
-  frames = _to_float(frames)
-  apply = functools.partial(model.apply, {"params": params}, frames, state["slots"], method=savi.SAVi.step)
+  features = model.apply({"params": params}, _to_float(frames), method=savi.SAVi.encode_frame)
+  apply = functools.partial(model.apply, {"params": params}, features, state["slots"], method=savi.SAVi.correct)
   later = apply(first=False)
   if model.iterations_first != model.num_iterations:
     first = state["first"][:, None, None]
