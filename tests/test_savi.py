@@ -310,6 +310,30 @@ def test_a_shaded_slot_decoder_keeps_each_slot_one_hue():
   np.testing.assert_allclose(out["recon"], jnp.einsum("bkhw,bkhwc->bhwc", out["masks"], out["rgb"]), atol=1e-5)
 
 
+def test_a_learned_position_decoder_is_a_per_pixel_map_of_slot_and_cell():
+  """position="learned" with 1x1 layers: each pixel's output depends on its slot and its own cell's vector only, so
+  permuting the cells' vectors permutes the output pixels the same way, and each cell's masks follow a Dense stack."""
+  slots = jax.random.normal(jax.random.key(5), (2, 3, 16))
+  decoder = savi.SpatialBroadcastDecoder(grid_size=4, features=(8, 8), kernel_size=1, strides=(1, 1), rgb="slot",
+                                         position="learned")
+  params = decoder.init(jax.random.key(6), slots)["params"]
+  assert params["position"].shape == (4, 4, 8) and params["up0"]["conv"]["kernel"].shape == (8, 8)   # Dense, not Conv
+  out = decoder.apply({"params": params}, slots)
+  order = np.random.default_rng(0).permutation(16)
+  shuffled = dict(params, position=params["position"].reshape(16, 8)[order].reshape(4, 4, 8))
+  moved = decoder.apply({"params": shuffled}, slots)
+  np.testing.assert_allclose(moved["masks"].reshape(2, 3, 16), out["masks"].reshape(2, 3, 16)[..., order], atol=1e-6)
+  dense = lambda p, x: x @ p["kernel"] + p["bias"]                    # pylint: disable=unnecessary-lambda-assignment
+  x = dense(params["project"], slots)[:, :, None, :] + params["position"].reshape(1, 1, 16, 8)  # [B, K, cells, 8]
+  for layer in ("up0", "up1"):
+    x = jax.nn.relu(dense(params[layer]["conv"], x))
+  alpha = dense(params["output"], x)[..., 0]                          # [B, K, cells]
+  np.testing.assert_allclose(out["masks"].reshape(2, 3, 16), jax.nn.softmax(alpha, axis=1), atol=1e-5)
+  with pytest.raises(ValueError, match="coords"):
+    savi.SpatialBroadcastDecoder(grid_size=4, features=(8,), kernel_size=1, strides=(1,), position="fourier").init(
+        jax.random.key(6), slots)
+
+
 def test_first_frame_iterations_apply_to_the_first_frame_only():
   """first_frame_iterations=3, num_iterations=1: frame 0 gets three iterations from the initial slots, later frames
   one from the predictor; the step form (first=True on frame 0) and the frozen encoder's batched state agree."""
@@ -349,7 +373,8 @@ def test_bad_resolution_is_a_user_error():
   config.env.resolution = 25
   with pytest.raises(UserError, match="grid_size"):
     pretrain.validate_config(config)
-  for field, bad in (("init_mean", "random"), ("slot_gradient", "implicit"), ("decoder.rgb", "pixel")):
+  for field, bad in (("init_mean", "random"), ("slot_gradient", "implicit"), ("decoder.rgb", "pixel"),
+                     ("decoder.position", "fourier")):
     broken = tiny_config()
     common.override(broken, f"savi.{field}={bad!r}")
     with pytest.raises(UserError, match=f"savi.{field}='{bad}' is not one of"):

@@ -26,6 +26,7 @@ from roboshape.models import layers
 INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
 DECODER_RGBS = ("spatial", "slot", "slot_shaded")  # SpatialBroadcastDecoder(rgb=...)
+DECODER_POSITIONS = ("coords", "learned")          # SpatialBroadcastDecoder(position=...)
 
 
 class CNNEncoder(nn.Module):
@@ -144,7 +145,7 @@ class Processor(nn.Module):
 
 
 class Upsample(nn.Module):
-  """A learned upsampling by `stride` (a plain convolution when stride is 1).
+  """A learned upsampling by `stride` (a plain convolution when stride is 1, a Dense layer when the kernel is 1x1).
 
   "subpixel": a convolution to stride * stride * C channels, then depth-to-space; "transpose": a transposed
   convolution. Both learn the same family of upsamplings; XLA's CPU backend runs the sub-pixel form faster
@@ -159,6 +160,8 @@ class Upsample(nn.Module):
   @nn.compact
   def __call__(self, x: jnp.ndarray) -> jnp.ndarray:
     kernel, s = (self.kernel_size, self.kernel_size), self.stride
+    if s == 1 and self.kernel_size == 1:
+      return nn.Dense(self.features, name="conv")(x)                     # a 1x1 conv: XLA's CPU convs are slow
     if s == 1:
       return nn.Conv(self.features, kernel, padding="SAME", name="conv")(x)
     if self.mode == "transpose":
@@ -181,6 +184,11 @@ class SpatialBroadcastDecoder(nn.Module):
   brightness gain in (0, 2) from the CNN (rgb="slot_shaded": one hue with its shading, e.g. a white robot with dark
   joints; the gain starts at 1 everywhere, so the mode starts as "slot").
 
+  position="coords": the grid's position embedding is a learned linear map of the pixel coordinates (SAVi's), so the
+  first layer sees a ramp per channel and a shallow decoder draws smooth, convex-ish masks. position="learned": a
+  free learned vector per grid cell; with a full-resolution grid and 1x1 layers (kernel_size=1, strides all 1) the
+  decoder is a per-pixel MLP of (slot, cell), which can draw a mask of any shape (e.g. a robot arm) at little cost.
+
   slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W]),
   with H = W = grid_size * prod(strides).
   """
@@ -190,13 +198,21 @@ class SpatialBroadcastDecoder(nn.Module):
   strides: Sequence[int] = (2, 2, 2, 1)
   upsampling: str = "subpixel"
   rgb: str = "spatial"
+  position: str = "coords"
 
   @nn.compact
   def __call__(self, slots: jnp.ndarray) -> Dict[str, jnp.ndarray]:
     batch, num_slots, slot_size = slots.shape
-    x = jnp.broadcast_to(slots.reshape(batch * num_slots, 1, 1, slot_size),
-                         (batch * num_slots, self.grid_size, self.grid_size, slot_size))
-    x = layers.PositionEmbedding(name="position")(x)
+    grid = (self.grid_size, self.grid_size)
+    if self.position == "coords":
+      x = jnp.broadcast_to(slots.reshape(batch * num_slots, 1, 1, slot_size), (batch * num_slots, *grid, slot_size))
+      x = layers.PositionEmbedding(name="position")(x)
+    elif self.position == "learned":                                       # the slot projected, then broadcast
+      width = self.features[0] if self.features else slot_size
+      x = nn.Dense(width, name="project")(slots).reshape(batch * num_slots, 1, 1, width)
+      x = x + self.param("position", nn.initializers.normal(0.5), (*grid, width))
+    else:
+      raise ValueError(f"unknown decoder position {self.position!r}; use one of {DECODER_POSITIONS}.")
     for i, (channels, stride) in enumerate(zip(self.features, self.strides)):
       x = nn.relu(Upsample(channels, self.kernel_size, stride, self.upsampling, name=f"up{i}")(x))
     if self.rgb == "spatial":
@@ -263,6 +279,7 @@ class SAVi(nn.Module):
   decoder_strides: Sequence[int] = (2, 2, 2, 1)
   decoder_upsampling: str = "subpixel"
   decoder_rgb: str = "spatial"
+  decoder_position: str = "coords"
   input_pool: int = 1
 
   def setup(self):
@@ -272,7 +289,8 @@ class SAVi(nn.Module):
     self.processor = Processor(self.num_iterations, self.slot_mlp_size, self.predictor_heads,
                                self.predictor_mlp_size, self.predictor_identity_init, self.slot_gradient)
     self.decoder = SpatialBroadcastDecoder(self.decoder_grid_size, self.decoder_features, self.decoder_kernel_size,
-                                           self.decoder_strides, self.decoder_upsampling, self.decoder_rgb)
+                                           self.decoder_strides, self.decoder_upsampling, self.decoder_rgb,
+                                           self.decoder_position)
 
   @property
   def output_resolution(self) -> int:
@@ -370,4 +388,5 @@ def build_model(savi_config, resolution: int) -> SAVi:
       decoder_grid_size=decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.get("rgb", "spatial")),
+      decoder_position=str(c.decoder.get("position", "coords")),
       input_pool=input_pool(c))

@@ -51,7 +51,8 @@ def validate_config(config) -> None:
                     f"({len(c.decoder.strides)}) must have the same length.")
   for field, value, choices in (("init_mean", c.get("init_mean", "shared"), savi.INIT_MEANS),
                                 ("slot_gradient", c.get("slot_gradient", "full"), savi.SLOT_GRADIENTS),
-                                ("decoder.rgb", c.decoder.get("rgb", "spatial"), savi.DECODER_RGBS)):
+                                ("decoder.rgb", c.decoder.get("rgb", "spatial"), savi.DECODER_RGBS),
+                                ("decoder.position", c.decoder.get("position", "coords"), savi.DECODER_POSITIONS)):
     if value not in choices:
       raise UserError(f"savi.{field}={value!r} is not one of {choices}; set --config.savi.{field} to one of them.")
   if int(c.num_iterations) < 1 or int(c.get("first_frame_iterations", 0)) < 0:
