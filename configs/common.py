@@ -71,11 +71,12 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
   paper: SAVi-S on 64x64 (five 32-channel 5x5 convs at full resolution, slot size 128, 8x8 broadcast grid and four
   64-channel transposed convs). small: the same design made cheap enough for a 2-core CPU: it models the frames
   average-pooled to 32x32 (pool=2; its masks are scored at 64x64), the first conv has stride 2, the decoder has two
-  3x3 stride-2 layers of 32 and 16 channels for the alpha masks (it runs once per slot) and paints each slot in
-  one colour (decoder.rgb="slot"), with 9 slots (no spares). It trains the way that moved FG-ARI off zero here:
+  3x3 stride-2 layers of 32 and 16 channels for the alpha masks (it runs once per slot) from a learned vector per
+  8x8 grid cell (decoder.position="learned") and paints each slot in one colour (decoder.rgb="slot"), with 9 slots
+  (no spares). It trains the way that moved FG-ARI off zero here:
   learned initial slots without noise, 3 slot-attention iterations with the gradient of the last one only, a
-  predictor that starts as LayerNorm, and clips of 6 frames x 4 (0.6 s per step alone on the 2-core CPU, 8000
-  steps ~ 80 min). The FG-ARI >= 0.6 bar is not reached yet: results/savi_small/README.md has every curve.
+  predictor that starts as LayerNorm, and clips of 6 frames x 4 (0.5 s per step alone on the 2-core CPU, 8000
+  steps ~ 70 min). The FG-ARI >= 0.6 bar is not reached yet: results/savi_small/README.md has every curve.
   tiny: a toy model for tests and `make demo`.
   """
   paper = variant == "paper"
@@ -112,7 +113,8 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
                                                              # colour per slot (a Dense of the slot), masks spatial;
                                                              # "slot_shaded": that colour x a per-pixel gain (0, 2)
           upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
-          position="coords",      # grid position embedding: "coords" (linear map of the coordinates) or "learned"
+          position="learned" if variant == "small" else "coords",  # grid position embedding: "coords" (a linear
+                                  # map of the coordinates) or "learned"
                                   # (a free vector per cell; with kernel_size=1 and strides 1, a per-pixel MLP)
       )),
       train=ml_collections.ConfigDict(dict(

@@ -32,6 +32,8 @@ RUNS = {  # file -> legend
     "small_v7.json": "the :small now (one colour per slot, 9 slots, 4 clips x 6), launch.py",
     "small_v8_6slots_shaded.json": "6 slots, shaded colour per slot, 4 clips x 6, launch.py",
     "small_v9_9slots_shaded.json": "9 slots, shaded colour per slot, 4 clips x 6, launch.py",
+    "small_v10_pixel_mlp_decoder.json": "the :small + a per-pixel MLP decoder (learned vector per pixel), launch.py",
+    "small_v11_learned_position.json": "the :small + a learned vector per 8x8 decoder grid cell, launch.py",
 }
 
 
