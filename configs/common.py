@@ -113,9 +113,9 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
                                                              # colour per slot (a Dense of the slot), masks spatial;
                                                              # "slot_shaded": that colour x a per-pixel gain (0, 2)
           upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
-          position="learned" if variant == "small" else "coords",  # grid position embedding: "coords" (a linear
-                                  # map of the coordinates) or "learned"
-                                  # (a free vector per cell; with kernel_size=1 and strides 1, a per-pixel MLP)
+          # grid position embedding: "coords" (a linear map of the pixel coordinates) or "learned" (a free vector
+          # per grid cell; with kernel_size=1 and strides all 1 the decoder is a per-pixel MLP)
+          position="learned" if variant == "small" else "coords",
       )),
       train=ml_collections.ConfigDict(dict(
           steps=_pick(variant, 100_000, 8_000, 20),
