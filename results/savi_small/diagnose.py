@@ -50,6 +50,19 @@ def video_and_frames(seg, masks):
           [decomposition.fg_ari(seg[t:t + 1], masks[t:t + 1]) for t in range(len(seg))])
 
 
+def merged(labels, pairs):
+  """labels with each slot a of the (a, b) pairs counted as slot b (a copy)."""
+  labels = labels.copy()
+  for a, b in pairs:
+    labels[labels == a] = b
+  return labels
+
+
+def relabelled_fg_ari(segs, labels, k, relabel):
+  """Mean video FG-ARI of the argmax labels after relabel(seg, labels) -> new labels, over the episodes."""
+  return np.mean([decomposition.fg_ari(seg, one_hot(relabel(seg, lab), k)) for seg, lab in zip(segs, labels)])
+
+
 def draw(path, episodes, labels, rows=(5, 6, 0), frames=(0, 4, 8, 12, 16, 23)):
   """Frames, segmentations and argmax slot labels of some episodes, three rows per episode, into PNG `path`."""
   import matplotlib  # pylint: disable=import-outside-toplevel
@@ -117,19 +130,9 @@ def main(workdir, merges, figure=None):
   print("4. relabelled slots:")
   for merge in merges:
     pairs = [tuple(int(x) for x in item.split(":")) for item in merge.split(",")]
-    scores = []
-    for seg, lab in zip(segs, labels):
-      lab = lab.copy()
-      for a, b in pairs:
-        lab[lab == a] = b
-      scores.append(decomposition.fg_ari(seg, one_hot(lab, k)))
-    print(f"   {merge}: video FG-ARI {np.mean(scores):.3f}")
-  scores = []
-  for seg, lab in zip(segs, labels):
-    lab = lab.copy()
-    lab[seg == ROBOT] = np.bincount(lab[seg == ROBOT], minlength=k).argmax()
-    scores.append(decomposition.fg_ari(seg, one_hot(lab, k)))
-  print(f"   every robot pixel in the robot's main slot: video FG-ARI {np.mean(scores):.3f}")
+    print(f"   {merge}: video FG-ARI {relabelled_fg_ari(segs, labels, k, lambda seg, lab: merged(lab, pairs)):.3f}")
+  whole = lambda seg, lab: np.where(seg == ROBOT, np.bincount(lab[seg == ROBOT], minlength=k).argmax(), lab)
+  print(f"   every robot pixel in the robot's main slot: video FG-ARI {relabelled_fg_ari(segs, labels, k, whole):.3f}")
 
 
 if __name__ == "__main__":
