@@ -34,6 +34,7 @@ RUNS = {  # file -> legend
     "small_v9_9slots_shaded.json": "9 slots, shaded colour per slot, 4 clips x 6, launch.py",
     "small_v10_pixel_mlp_decoder.json": "the :small + a per-pixel MLP decoder (learned vector per pixel), launch.py",
     "small_v11_learned_position.json": "the :small + a learned vector per 8x8 decoder grid cell, launch.py",
+    "small_v12_learned_shaded.json": "the :small now + a shaded colour per slot, launch.py",
 }
 
 
