@@ -35,6 +35,7 @@ RUNS = {  # file -> legend
     "small_v10_pixel_mlp_decoder.json": "the :small + a per-pixel MLP decoder (learned vector per pixel), launch.py",
     "small_v11_learned_position.json": "the :small + a learned vector per 8x8 decoder grid cell, launch.py",
     "small_v12_learned_shaded.json": "the :small now + a shaded colour per slot, launch.py",
+    "small_v13_7slots.json": "the :small now with 7 slots, launch.py",
 }
 
 
