@@ -29,13 +29,13 @@ RUNS = {  # file -> legend
     "probe_slot_colour.json": "probe, 8 clips x 2: as above + one colour per slot",
     "probe_slot_colour_9slots.json": "probe, 8 clips x 2: as above + one colour per slot, 9 slots",
     "small_v6_clips2.json": "one colour per slot, 9 slots, 8 clips x 2, launch.py",
-    "small_v7.json": "the :small now (one colour per slot, 9 slots, 4 clips x 6), launch.py",
+    "small_v7.json": "v7, the :small of the sixth session (one colour per slot, 9 slots, 4 clips x 6), launch.py",
     "small_v8_6slots_shaded.json": "6 slots, shaded colour per slot, 4 clips x 6, launch.py",
     "small_v9_9slots_shaded.json": "9 slots, shaded colour per slot, 4 clips x 6, launch.py",
-    "small_v10_pixel_mlp_decoder.json": "the :small + a per-pixel MLP decoder (learned vector per pixel), launch.py",
-    "small_v11_learned_position.json": "the :small + a learned vector per 8x8 decoder grid cell, launch.py",
-    "small_v12_learned_shaded.json": "the :small now + a shaded colour per slot, launch.py",
-    "small_v13_7slots.json": "the :small now with 7 slots, launch.py",
+    "small_v10_pixel_mlp_decoder.json": "v10, v7 + a per-pixel MLP decoder (learned vector per pixel), launch.py",
+    "small_v11_learned_position.json": "v11, the :small now: v7 + a learned vector per 8x8 decoder grid cell, launch.py",
+    "small_v12_learned_shaded.json": "v12, v11 + a shaded colour per slot, launch.py",
+    "small_v13_7slots.json": "v13, v11 with 7 slots, launch.py",
 }
 
 
