@@ -310,6 +310,28 @@ def test_a_shaded_slot_decoder_keeps_each_slot_one_hue():
   np.testing.assert_allclose(out["recon"], jnp.einsum("bkhw,bkhwc->bhwc", out["masks"], out["rgb"]), atol=1e-5)
 
 
+def test_a_palette_decoder_paints_each_pixel_in_one_of_its_slots_colours():
+  """rgb="slot_palette": every pixel of a slot is exactly one of the slot's 2 colours (no blends), colour 0 at init
+  (the "slot" mode), and the choice still gets a gradient through the hard pick."""
+  slots = jax.random.normal(jax.random.key(5), (2, 3, 16))
+  kwargs = dict(grid_size=4, features=(8, 8), kernel_size=3, strides=(2, 1))
+  decoder = savi.SpatialBroadcastDecoder(**kwargs, rgb="slot_palette")
+  params = decoder.init(jax.random.key(6), slots)["params"]
+  colour = params["colour"]
+  palette = (slots @ colour["kernel"] + colour["bias"]).reshape(2, 3, 2, 3)   # [B, K, P, 3]
+  np.testing.assert_allclose(decoder.apply({"params": params}, slots)["rgb"],
+                             jnp.broadcast_to(palette[:, :, None, None, 0], (2, 3, 8, 8, 3)), atol=1e-6)
+  params = dict(params, choice=dict(params["choice"], kernel=jax.random.normal(jax.random.key(7), (8, 2))))
+  out = decoder.apply({"params": params}, slots)
+  distance = jnp.abs(out["rgb"][:, :, :, :, None] - palette[:, :, None, None]).max(-1)   # [B, K, H, W, P]
+  assert float(distance.min(-1).max()) < 1e-5                               # each pixel is one palette colour
+  picks = jnp.argmin(distance, -1)
+  assert 0 < float(picks.mean()) < 1                                       # and both colours are used
+  np.testing.assert_allclose(out["recon"], jnp.einsum("bkhw,bkhwc->bhwc", out["masks"], out["rgb"]), atol=1e-5)
+  grad = jax.grad(lambda p: decoder.apply({"params": p}, slots)["recon"].sum())(params)
+  assert float(jnp.abs(grad["choice"]["kernel"]).max()) > 0.0
+
+
 def test_a_learned_position_decoder_is_a_per_pixel_map_of_slot_and_cell():
   """position="learned" with 1x1 layers: each pixel's output depends on its slot and its own cell's vector only, so
   permuting the cells' vectors permutes the output pixels the same way, and each cell's masks follow a Dense stack."""

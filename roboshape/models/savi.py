@@ -25,7 +25,7 @@ from roboshape.models import layers
 
 INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
-DECODER_RGBS = ("spatial", "slot", "slot_shaded")  # SpatialBroadcastDecoder(rgb=...)
+DECODER_RGBS = ("spatial", "slot", "slot_shaded", "slot_palette")  # SpatialBroadcastDecoder(rgb=...)
 DECODER_POSITIONS = ("coords", "learned")          # SpatialBroadcastDecoder(position=...)
 
 
@@ -182,7 +182,10 @@ class SpatialBroadcastDecoder(nn.Module):
   alpha only, with each slot painted in one colour, a linear map of the slot (rgb="slot": a slot can then explain
   only a region of one colour, which pushes the masks to follow colours), or that colour times a per-pixel
   brightness gain in (0, 2) from the CNN (rgb="slot_shaded": one hue with its shading, e.g. a white robot with dark
-  joints; the gain starts at 1 everywhere, so the mode starts as "slot").
+  joints; the gain starts at 1 everywhere, so the mode starts as "slot"), or one of the slot's `palette_size` colours
+  per pixel, picked by the CNN (rgb="slot_palette": a hard choice, the softmax's gradient passed straight through,
+  so a slot paints e.g. white links and dark joints but never the greys between; the choice starts at colour 0,
+  i.e. as "slot").
 
   position="coords": the grid's position embedding is a learned linear map of the pixel coordinates (SAVi's), so the
   first layer sees a ramp per channel and a shallow decoder draws smooth, convex-ish masks. position="learned": a
@@ -199,6 +202,7 @@ class SpatialBroadcastDecoder(nn.Module):
   upsampling: str = "subpixel"
   rgb: str = "spatial"
   position: str = "coords"
+  palette_size: int = 2
 
   @nn.compact
   def __call__(self, slots: jnp.ndarray) -> Dict[str, jnp.ndarray]:
@@ -226,6 +230,14 @@ class SpatialBroadcastDecoder(nn.Module):
       if self.rgb == "slot_shaded":
         shade = nn.Dense(1, kernel_init=nn.initializers.zeros, name="shade")(x)
         rgb = rgb * 2.0 * jax.nn.sigmoid(shade.reshape(*alpha.shape, 1))   # [B, K, H, W, 3]
+    elif self.rgb == "slot_palette":
+      alpha = nn.Dense(1, name="output")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
+      palette = nn.Dense(3 * self.palette_size, name="colour")(slots).reshape(batch, num_slots, self.palette_size, 3)
+      logits = nn.Dense(self.palette_size, kernel_init=nn.initializers.zeros, name="choice")(x)
+      soft = jax.nn.softmax(logits.reshape(*alpha.shape, self.palette_size), axis=-1)      # [B, K, H, W, P]
+      hard = jax.nn.one_hot(jnp.argmax(soft, axis=-1), self.palette_size, dtype=soft.dtype)
+      choice = soft + jax.lax.stop_gradient(hard - soft)                    # forward: one-hot; backward: softmax
+      rgb = jnp.einsum("bkhwp,bkpc->bkhwc", choice, palette)               # [B, K, H, W, 3]
     else:
       raise ValueError(f"unknown decoder rgb {self.rgb!r}; use one of {DECODER_RGBS}.")
     masks = jax.nn.softmax(alpha, axis=1)                                  # [B, K, H, W], sums to 1 over K
