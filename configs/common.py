@@ -112,7 +112,8 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           rgb="slot" if variant == "small" else "spatial",  # "spatial": RGB per pixel from the CNN; "slot": one
                                                              # colour per slot (a Dense of the slot), masks spatial;
                                                              # "slot_shaded": that colour x a per-pixel gain (0, 2);
-                                                             # "slot_palette": one of 2 colours per slot, per pixel
+                                                             # "slot_palette": one of 2 colours per slot, per pixel;
+                                                             # "slot_dark": the colour or a darker shade of it
           upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
           # grid position embedding: "coords" (a linear map of the pixel coordinates) or "learned" (a free vector
           # per grid cell; with kernel_size=1 and strides all 1 the decoder is a per-pixel MLP)

@@ -332,6 +332,25 @@ def test_a_palette_decoder_paints_each_pixel_in_one_of_its_slots_colours():
   assert float(jnp.abs(grad["choice"]["kernel"]).max()) > 0.0
 
 
+def test_a_dark_shade_decoder_paints_each_pixel_in_its_slots_colour_or_its_dark_shade():
+  """rgb="slot_dark": a hard pick per pixel between the slot's colour and that colour times its dark factor (0, 0.5)."""
+  slots = jax.random.normal(jax.random.key(5), (2, 3, 16))
+  decoder = savi.SpatialBroadcastDecoder(grid_size=4, features=(8, 8), kernel_size=3, strides=(2, 1), rgb="slot_dark")
+  params = decoder.init(jax.random.key(6), slots)["params"]
+  params = dict(params, choice=dict(params["choice"], kernel=jax.random.normal(jax.random.key(7), (8, 2))))
+  out = decoder.apply({"params": params}, slots)
+  colour = (slots @ params["colour"]["kernel"] + params["colour"]["bias"])[:, :, None, None]   # [B, K, 1, 1, 3]
+  gain = out["rgb"] / colour
+  np.testing.assert_allclose(gain[..., 1:], gain[..., :1].repeat(2, axis=-1), rtol=1e-4)   # one hue per slot
+  full = np.isclose(gain[..., 0], 1.0, atol=1e-5)
+  dark = gain[..., 0][~full]
+  assert 0 < full.mean() < 1 and float(dark.min()) > 0.0 and float(dark.max()) < 0.5
+  for b in range(2):                                                       # one dark factor per slot
+    for k in range(3):
+      shades = gain[b, k, ..., 0][~full[b, k]]
+      assert shades.size == 0 or float(shades.max() - shades.min()) < 1e-4
+
+
 def test_a_learned_position_decoder_is_a_per_pixel_map_of_slot_and_cell():
   """position="learned" with 1x1 layers: each pixel's output depends on its slot and its own cell's vector only, so
   permuting the cells' vectors permutes the output pixels the same way, and each cell's masks follow a Dense stack."""

@@ -25,7 +25,7 @@ from roboshape.models import layers
 
 INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
-DECODER_RGBS = ("spatial", "slot", "slot_shaded", "slot_palette")  # SpatialBroadcastDecoder(rgb=...)
+DECODER_RGBS = ("spatial", "slot", "slot_shaded", "slot_palette", "slot_dark")  # SpatialBroadcastDecoder(rgb=...)
 DECODER_POSITIONS = ("coords", "learned")          # SpatialBroadcastDecoder(position=...)
 
 
@@ -185,7 +185,8 @@ class SpatialBroadcastDecoder(nn.Module):
   joints; the gain starts at 1 everywhere, so the mode starts as "slot"), or one of the slot's `palette_size` colours
   per pixel, picked by the CNN (rgb="slot_palette": a hard choice, the softmax's gradient passed straight through,
   so a slot paints e.g. white links and dark joints but never the greys between; the choice starts at colour 0,
-  i.e. as "slot").
+  i.e. as "slot"), or the same hard pick between the slot's colour and that colour times the slot's own dark factor
+  in (0, 0.5) (rgb="slot_dark": two shades of one hue, e.g. white links and grey joints, but no other hue).
 
   position="coords": the grid's position embedding is a learned linear map of the pixel coordinates (SAVi's), so the
   first layer sees a ramp per channel and a shallow decoder draws smooth, convex-ish masks. position="learned": a
@@ -230,12 +231,19 @@ class SpatialBroadcastDecoder(nn.Module):
       if self.rgb == "slot_shaded":
         shade = nn.Dense(1, kernel_init=nn.initializers.zeros, name="shade")(x)
         rgb = rgb * 2.0 * jax.nn.sigmoid(shade.reshape(*alpha.shape, 1))   # [B, K, H, W, 3]
-    elif self.rgb == "slot_palette":
+    elif self.rgb in ("slot_palette", "slot_dark"):
       alpha = nn.Dense(1, name="output")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
-      palette = nn.Dense(3 * self.palette_size, name="colour")(slots).reshape(batch, num_slots, self.palette_size, 3)
-      logits = nn.Dense(self.palette_size, kernel_init=nn.initializers.zeros, name="choice")(x)
-      soft = jax.nn.softmax(logits.reshape(*alpha.shape, self.palette_size), axis=-1)      # [B, K, H, W, P]
-      hard = jax.nn.one_hot(jnp.argmax(soft, axis=-1), self.palette_size, dtype=soft.dtype)
+      if self.rgb == "slot_palette":
+        size = self.palette_size
+        palette = nn.Dense(3 * size, name="colour")(slots).reshape(batch, num_slots, size, 3)
+      else:
+        size = 2
+        colour = nn.Dense(3, name="colour")(slots)                         # [B, K, 3]
+        dark = 0.5 * jax.nn.sigmoid(nn.Dense(1, name="dark")(slots))       # [B, K, 1]
+        palette = jnp.stack([colour, colour * dark], axis=2)               # [B, K, 2, 3]
+      logits = nn.Dense(size, kernel_init=nn.initializers.zeros, name="choice")(x)
+      soft = jax.nn.softmax(logits.reshape(*alpha.shape, size), axis=-1)    # [B, K, H, W, P]
+      hard = jax.nn.one_hot(jnp.argmax(soft, axis=-1), size, dtype=soft.dtype)
       choice = soft + jax.lax.stop_gradient(hard - soft)                    # forward: one-hot; backward: softmax
       rgb = jnp.einsum("bkhwp,bkpc->bkhwc", choice, palette)               # [B, K, H, W, 3]
     else:
