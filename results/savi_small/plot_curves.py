@@ -36,6 +36,9 @@ RUNS = {  # file -> legend
     "small_v11_learned_position.json": "v11, the :small now: v7 + a learned vector per 8x8 decoder grid cell, launch.py",
     "small_v12_learned_shaded.json": "v12, v11 + a shaded colour per slot, launch.py",
     "small_v13_7slots.json": "v13, v11 with 7 slots, launch.py",
+    "small_v11x_12000.json": "v11 resumed at step 8000 on a 12 000-step schedule, launch.py",
+    "small_v14_palette.json": "v14, v11 with two colours per slot (hard pick per pixel), launch.py",
+    "small_v15_dark_shade.json": "v15, v11 with its colour or a dark shade of it per pixel, launch.py",
 }
 
 
