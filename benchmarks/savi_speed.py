@@ -46,16 +46,16 @@ def main():
   key = jax.random.key(1)
 
   start = time.perf_counter()
-  compiled = comp.train_step.lower(state, video, key).compile()
+  compiled = comp.train_step.lower(state, video, None, key).compile()
   compile_s = time.perf_counter() - start
   step_flops = flops.compiled_flops(compiled)
 
-  state, metrics = compiled(state, video, key)
+  state, metrics = compiled(state, video, None, key)
   jax.block_until_ready(metrics)
   times = []
   for _ in range(args.steps):
     start = time.perf_counter()
-    state, metrics = compiled(state, video, key)
+    state, metrics = compiled(state, video, None, key)
     jax.block_until_ready(metrics)
     times.append(time.perf_counter() - start)
   step_s = float(np.median(times))

@@ -38,6 +38,7 @@ def env_config(variant: str) -> ml_collections.ConfigDict:
       max_distractors=4,
       max_episode_steps=0,      # 0: the task's own horizon (>= 1.5x the expert's 95th percentile)
       sim_backend="physx_cpu",  # "physx_cuda" batches envs in one process where a GPU is present
+      depth=False,              # also store the camera's depth (uint16 mm) in the dataset (savi.loss.depth_weight)
   ))
 
 
@@ -126,6 +127,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           learning_rate=_pick(variant, 2e-4, 4e-4, 1e-3),
           warmup_steps=_pick(variant, 2500, 200, 2),
           clip_norm=0.05,         # global gradient norm
+          depth_weight=0.0,       # > 0: also reconstruct depth (metres), weighted so; needs env.depth=True data
           checkpoint_every=_pick(variant, 1000, 250, 10),
           keep_checkpoints=3,
           log_every=_pick(variant, 50, 10, 1),

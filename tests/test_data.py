@@ -95,6 +95,36 @@ def test_round_trip_of_synthetic_episodes(synthetic_dataset):
   assert [e["seed"] for e in reader.read_episodes(synthetic_dataset, "val")] == [1_000_000, 1_000_001]
 
 
+def test_depth_round_trips_and_comes_with_the_clips(tmp_path, synthetic_dataset):
+  """A dataset collected with depth stores it (uint16 mm), reads it back, batches it with the clips, validates it."""
+  def with_depth(seed):
+    episode = _synthetic_episode(seed)
+    episode["depth"] = (np.random.default_rng(seed).integers(300, 1500, episode["segmentation"].shape)
+                        .astype(np.uint16))
+    return episode
+
+  path = rlds.write_dataset(str(tmp_path / "roboshape_push" / "1.0.0"),
+                            {"train": [with_depth(s) for s in range(2)], "val": [with_depth(1_000_000)]})
+  assert _state(path)["config"]["depth"] is True
+  for e in reader.read_episodes(path, "train"):
+    np.testing.assert_array_equal(e["depth"], with_depth(e["seed"])["depth"])
+  b = next(reader.clip_batches(path, "train", clip_length=3, batch_size=4, seed=1))
+  assert b["depth"].dtype == np.uint16 and b["depth"].shape == (4, 3, 16, 16)
+  for i in range(4):
+    s = int(b["start"][i])
+    np.testing.assert_array_equal(b["depth"][i], with_depth(int(b["episode_seed"][i]))["depth"][s:s + 3])
+  assert validate.main([path]) == 0
+  with pytest.raises(ValueError, match="lacks depth"):
+    rlds.write_dataset(str(tmp_path / "mixed"), {"train": [with_depth(0), _synthetic_episode(1)]})
+  assert "depth" not in next(reader.read_episodes(synthetic_dataset, "val"))
+  assert "depth" not in next(reader.clip_batches(synthetic_dataset, "train", clip_length=3, batch_size=2))
+  # A dataset written before depth existed records no "depth": it matches a config without depth, not one with it.
+  old = {k: v for k, v in _state(synthetic_dataset)["config"].items() if k != "depth"}
+  wanted = dict(old, depth=False)
+  assert collect.config_differences(old, wanted) == []
+  assert collect.config_differences(old, dict(wanted, depth=True)) == ["depth: False in the dataset, True in the config"]
+
+
 def test_clip_batches_are_deterministic_resumable_and_match_the_episodes(synthetic_dataset):
   batches = reader.clip_batches(synthetic_dataset, "train", clip_length=3, batch_size=5, seed=7)
   first = [next(batches) for _ in range(4)]
@@ -274,17 +304,17 @@ def test_browse_writes_an_animation_and_a_strip(synthetic_dataset, tmp_path):
 # ----------------------------------------------------------------------------------------- real simulator workers
 @pytest.fixture(scope="module")
 def sim_pool():
-  """One real simulator worker (push, 32x32), shared by the tests below."""
+  """One real simulator worker (push, 32x32, with depth), shared by the tests below."""
   from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
-  with SimPool(EnvSpec("push", resolution=32), num_workers=1) as pool:
+  with SimPool(EnvSpec("push", resolution=32, depth=True), num_workers=1) as pool:
     yield pool
 
 
 @pytest.fixture(scope="module")
 def real_dataset(sim_pool, tmp_path_factory):
-  """The collect stage (`collect.run`) on the real worker: 2 train + 1 val episodes at 32x32; its dataset path."""
+  """The collect stage (`collect.run`) on the real worker: 2 train + 1 val episodes at 32x32 with depth; its path."""
   import roboshape.sim  # pylint: disable=import-outside-toplevel
-  config = _config("push", train=2, resolution=32)
+  config = _config("push", train=2, resolution=32, env__depth=True)
   workdir = str(tmp_path_factory.mktemp("real_run"))
   specs = []
 
@@ -326,6 +356,8 @@ def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
               image=[steps[0]["observation"]["image"].dtype.name,
                      steps[0]["observation"]["image"].shape.as_list()],
               seg=steps[0]["observation"]["segmentation"].shape.as_list(),
+              depth=[steps[0]["observation"]["depth"].dtype.name,
+                     steps[0]["observation"]["depth"].shape.as_list()],
               first=[bool(s["is_first"]) for s in steps].index(True), last=bool(steps[-1]["is_last"]),
               amax=max(float(abs(s["action"].numpy()).max()) for s in steps)))
       assert not any(m.startswith("roboshape") for m in sys.modules)
@@ -343,7 +375,7 @@ def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
   assert len(got["train"]) == 2 and len(got["val"]) == 1 and got["val"][0]["seed"] >= 1_000_000
   for e in got["train"] + got["val"]:
     assert e["success"] and e["task"] == "push" and e["env_version"].startswith("roboshape-envs")
-    assert e["image"] == ["uint8", [32, 32, 3]] and e["seg"] == [32, 32]
+    assert e["image"] == ["uint8", [32, 32, 3]] and e["seg"] == [32, 32] and e["depth"] == ["uint16", [32, 32]]
     assert e["first"] == 0 and e["last"] and 0 < e["amax"] <= 1
   assert validate.main([real_dataset]) == 0
 
@@ -353,6 +385,11 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   (again,) = list(sim_pool.collect([stored["seed"]]))
   np.testing.assert_array_equal(stored["image"], again["image"])
   np.testing.assert_array_equal(stored["segmentation"], again["segmentation"])
+  np.testing.assert_array_equal(stored["depth"], again["depth"])
   np.testing.assert_array_equal(stored["action"][:-1], again["action"])
   np.testing.assert_array_equal(stored["reward"][:-1], again["reward"])
   assert set(np.unique(stored["segmentation"])) >= {1, 2, 3}  # table, robot and cube are in view
+  seg, depth = stored["segmentation"][0], stored["depth"][0].astype(np.int64)
+  # The camera looks down at the table: the backdrop behind it is farther, the cube on it nearer than its far edge.
+  assert np.median(depth[seg == 0]) > np.median(depth[seg == 1]) > 0
+  assert depth[seg == 3].max() < depth[seg == 1].max() and 100 < depth.min() and depth.max() < 5000

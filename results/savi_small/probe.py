@@ -67,7 +67,7 @@ def main(steps, overrides):
   start, losses = time.time(), []
   for step in range(1, steps + 1):
     clips = rng.choice(starts, batch)
-    state, metrics = comp.train_step(state, image[clips[:, None] + np.arange(length)], jax.random.key(1))
+    state, metrics = comp.train_step(state, image[clips[:, None] + np.arange(length)], None, jax.random.key(1))
     losses.append(float(metrics["loss"]))
     if step % int(os.environ.get("EVERY", 500)) == 0 or step == steps:
       out = jax.device_get(comp.eval_video(state["params"], val_image[:n, :frames]))

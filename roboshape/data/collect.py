@@ -30,7 +30,9 @@ LEVEL = "train"
 SEED_BASES = {"train": 0, "val": 1_000_000}
 # The fields of a config that decide a dataset's content: a stored dataset must match them all.
 _SUMMARY_FIELDS = ("task", "level", "resolution", "min_distractors", "max_distractors", "max_episode_steps",
-                   "train_episodes", "val_episodes", "train_seed_base", "val_seed_base")
+                   "train_episodes", "val_episodes", "train_seed_base", "val_seed_base", "depth")
+# Values of fields that datasets written before the field existed do not record.
+_SUMMARY_DEFAULTS = {"depth": False}
 _MAX_WORKER_RESTARTS = 3
 
 
@@ -57,13 +59,16 @@ def config_summary(config) -> Dict[str, Any]:
       "val_episodes": targets["val"],
       "train_seed_base": SEED_BASES["train"],
       "val_seed_base": SEED_BASES["val"],
+      "depth": bool(config.env.get("depth", False)),
   }
 
 
 def config_differences(stored: Mapping[str, Any], wanted: Mapping[str, Any]) -> list:
   """Human-readable differences, e.g. ["resolution: 32 in the dataset, 64 in the config"]."""
-  return [f"{key}: {stored.get(key)!r} in the dataset, {wanted.get(key)!r} in the config"
-          for key in _SUMMARY_FIELDS if stored.get(key) != wanted.get(key)]
+  def value(summary, key):
+    return summary.get(key, _SUMMARY_DEFAULTS.get(key))
+  return [f"{key}: {value(stored, key)!r} in the dataset, {value(wanted, key)!r} in the config"
+          for key in _SUMMARY_FIELDS if value(stored, key) != value(wanted, key)]
 
 
 def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:

@@ -44,7 +44,9 @@ def _flatten(example: Dict[str, Any]) -> Dict[str, tf.Tensor]:
   """An RLDS episode (steps as a nested tf.data.Dataset) -> one dict of [S, ...] tensors."""
   steps = example["steps"].batch(_MAX_STEPS).get_single_element()
   meta = example["episode_metadata"]
+  depth = {"depth": steps["observation"]["depth"]} if "depth" in steps["observation"] else {}
   return {
+      **depth,
       "image": steps["observation"]["image"],
       "segmentation": steps["observation"]["segmentation"],
       "action": steps["action"],
@@ -78,7 +80,8 @@ def _iterate(ds: tf.data.Dataset) -> Iterator[Dict[str, Any]]:
 def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iterator[Dict[str, Any]]:
   """The episodes of a split in their stored order (seed order), as numpy.
 
-  Yields dicts with image uint8 [S,H,W,3], segmentation uint8 [S,H,W], action float32 [S,7], reward float32 [S],
+  Yields dicts with image uint8 [S,H,W,3], segmentation uint8 [S,H,W], (depth uint16 [S,H,W] in millimetres, in
+  a dataset collected with env.depth=True), action float32 [S,7], reward float32 [S],
   discount float32 [S], is_first / is_last / is_terminal bool [S], seed int, success bool, task, level,
   env_version str; S = T + 1 (the last step holds the final frame and a zero action).
   allow_incomplete: read a dataset whose collection has not finished (tools); training refuses one.
@@ -101,9 +104,9 @@ class ShardReader:
   (or another tf.errors.OpError) while iterating.
   """
 
-  def __init__(self, resolution: int):
+  def __init__(self, resolution: int, depth: bool = False):
     from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
-    feats = rlds.features(resolution)
+    feats = rlds.features(resolution, depth)
     self._decode = tf.function(lambda record: _flatten(feats.deserialize_example(record)))
 
   def read(self, file: str) -> Iterator[Dict[str, Any]]:
@@ -118,6 +121,7 @@ class _ClipTable:
     lengths = np.array([e["image"].shape[0] for e in episodes], np.int64)
     self.images = np.concatenate([e["image"] for e in episodes])
     self.segmentations = np.concatenate([e["segmentation"] for e in episodes])
+    self.depths = np.concatenate([e["depth"] for e in episodes]) if "depth" in episodes[0] else None
     self.seeds = np.array([e["seed"] for e in episodes], np.int64)
     offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     clips_per_episode = np.maximum(lengths - clip_length + 1, 0)
@@ -131,7 +135,8 @@ class _ClipTable:
     clips = rng.integers(0, len(self.clip_episode), size=batch_size)
     episode, start = self.clip_episode[clips], self.clip_start[clips]
     frames = self.offsets[episode][:, None] + start[:, None] + np.arange(self.clip_length)[None]
-    return [self.images[frames], self.segmentations[frames], self.seeds[episode], start]
+    out = [self.images[frames], self.segmentations[frames], self.seeds[episode], start]
+    return out + ([self.depths[frames]] if self.depths is not None else [])
 
 
 def clip_batches(path: str, split: str, clip_length: int, batch_size: int, seed: int = 0,
@@ -140,11 +145,14 @@ def clip_batches(path: str, split: str, clip_length: int, batch_size: int, seed:
 
   Batch b depends only on (path, split, clip_length, batch_size, seed, b): `start_batch=b` resumes the sequence.
   Yields video uint8 [B, L, H, W, 3], segmentation uint8 [B, L, H, W], episode_seed int64 [B], start int64 [B]
-  (the clip's first step within its episode).
+  (the clip's first step within its episode), and depth uint16 [B, L, H, W] (millimetres) in a dataset with depth.
   """
   if clip_length < 1 or batch_size < 1:
     raise UserError(f"clip_length ({clip_length}) and batch_size ({batch_size}) must be >= 1.")
-  table = _ClipTable(list(read_episodes(path, split)), clip_length)
+  episodes = list(read_episodes(path, split))
+  if not episodes:
+    raise UserError(f"split {split!r} of {path} has no episodes.")
+  table = _ClipTable(episodes, clip_length)
   if not len(table.clip_episode):
     raise UserError(f"no episode of split {split!r} in {path} has {clip_length} frames; lower the clip length.")
   res = table.images.shape[1:3]
@@ -152,14 +160,20 @@ def clip_batches(path: str, split: str, clip_length: int, batch_size: int, seed:
   def make(index):
     return table.batch(seed, int(index), batch_size)
 
+  with_depth = table.depths is not None
+
   def fetch(index):
-    video, segmentation, episode_seed, start = tf.numpy_function(
-        make, [index], [tf.uint8, tf.uint8, tf.int64, tf.int64], stateful=False)
+    dtypes = [tf.uint8, tf.uint8, tf.int64, tf.int64] + ([tf.uint16] if with_depth else [])
+    video, segmentation, episode_seed, start, *depth = tf.numpy_function(make, [index], dtypes, stateful=False)
     video.set_shape((batch_size, clip_length, *res, 3))
     segmentation.set_shape((batch_size, clip_length, *res))
     episode_seed.set_shape((batch_size,))
     start.set_shape((batch_size,))
-    return {"video": video, "segmentation": segmentation, "episode_seed": episode_seed, "start": start}
+    batch = {"video": video, "segmentation": segmentation, "episode_seed": episode_seed, "start": start}
+    if with_depth:
+      depth[0].set_shape((batch_size, clip_length, *res))
+      batch["depth"] = depth[0]
+    return batch
 
   ds = tf.data.Dataset.range(start_batch, np.iinfo(np.int64).max)
   ds = ds.map(fetch, num_parallel_calls=2, deterministic=True).prefetch(2)

@@ -8,6 +8,8 @@ Each example is one episode (RLDS): `steps` with S = T + 1 steps and `episode_me
   steps/observation/image         uint8 [H, W, 3]  the camera frame before the step's action (PNG in the shards)
   steps/observation/segmentation  uint8 [H, W]     simulator object ids (0 floor, 1 table, 2 robot, 3 red cube,
                                                    4 target/bin, 5+i distractor i)
+  steps/observation/depth         uint16 [H, W]    camera depth in millimetres (only in datasets collected with
+                                                   env.depth=True; roboshape.json's config says "depth": true)
   steps/action                    float32 [7]      the action the env executed; zeros on the last step
   steps/reward                    float32          reward of the step's action; 0 on the last step
   steps/discount                  float32          1
@@ -43,23 +45,27 @@ FILENAME_TEMPLATE = "{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_INDEX}"
 ACTION_DIM = 7
 DESCRIPTION = (
     "RoboShape expert demonstrations (Franka Panda, ManiSkill3) in the RLDS layout: one example per episode with "
-    "`steps` (observation/image uint8 HxWx3, observation/segmentation uint8 HxW object ids, action float32[7] as "
+    "`steps` (observation/image uint8 HxWx3, observation/segmentation uint8 HxW object ids, with env.depth also "
+    "observation/depth uint16 HxW millimetres, action float32[7] as "
     "executed, reward, discount, is_first, is_last, is_terminal) and `episode_metadata` (task, level, seed, success, "
     "env_version). The last step of an episode holds the final observation and a zero action. Only successful "
     "expert episodes are stored; metadata.json holds the collection config.")
 
 
-def features(resolution: int) -> tfds.features.FeaturesDict:
-  """The TFDS features of an episode at `resolution` x `resolution` pixels."""
+def features(resolution: int, depth: bool = False) -> tfds.features.FeaturesDict:
+  """The TFDS features of an episode at `resolution` x `resolution` pixels (with observation/depth if `depth`)."""
   scalar = tfds.features.Scalar
+  observation = {
+      "image": tfds.features.Image(shape=(resolution, resolution, 3), dtype=np.uint8, encoding_format="png"),
+      "segmentation": tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint8,
+                                           encoding=tfds.features.Encoding.ZLIB),
+  }
+  if depth:
+    observation["depth"] = tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint16,
+                                                encoding=tfds.features.Encoding.ZLIB)
   return tfds.features.FeaturesDict({
       "steps": tfds.features.Dataset({
-          "observation": tfds.features.FeaturesDict({
-              "image": tfds.features.Image(shape=(resolution, resolution, 3), dtype=np.uint8,
-                                           encoding_format="png"),
-              "segmentation": tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint8,
-                                                   encoding=tfds.features.Encoding.ZLIB),
-          }),
+          "observation": tfds.features.FeaturesDict(observation),
           "action": tfds.features.Tensor(shape=(ACTION_DIM,), dtype=np.float32),
           "reward": scalar(dtype=np.float32),
           "discount": scalar(dtype=np.float32),
@@ -91,11 +97,17 @@ def to_rlds(episode: Mapping[str, Any]) -> Dict[str, Any]:
   if segmentation.shape != image.shape[:3] or action.shape[0] != num_steps - 1 or reward.shape[0] != num_steps - 1:
     raise ValueError(f"episode of seed {episode.get('seed')}: inconsistent shapes image {image.shape}, "
                      f"segmentation {segmentation.shape}, action {action.shape}, reward {reward.shape}")
+  observation = {"image": image, "segmentation": segmentation}
+  if "depth" in episode:
+    observation["depth"] = np.asarray(episode["depth"], np.uint16)
+    if observation["depth"].shape != segmentation.shape:
+      raise ValueError(f"episode of seed {episode.get('seed')}: depth {observation['depth'].shape}, "
+                       f"segmentation {segmentation.shape}")
   index = np.arange(num_steps)
   is_last = index == num_steps - 1
   return {
       "steps": {
-          "observation": {"image": image, "segmentation": segmentation},
+          "observation": observation,
           "action": np.concatenate([action, np.zeros((1, ACTION_DIM), np.float32)]),
           "reward": np.concatenate([reward, np.zeros((1,), np.float32)]),
           "discount": np.ones((num_steps,), np.float32),
@@ -194,7 +206,8 @@ class DatasetWriter:
       raise UserError(f"{path} already holds a complete dataset; it is never rewritten. Delete it to collect again.")
     self.state = state
     self.resolution = int(state["config"]["resolution"])
-    self.features = features(self.resolution)
+    self.depth = bool(state["config"].get("depth", False))
+    self.features = features(self.resolution, self.depth)
     self._serializer = example_serializer.ExampleSerializer(self.features.get_serialized_info())
     os.makedirs(path, exist_ok=True)
     self._remove_stale_files()
@@ -242,6 +255,9 @@ class DatasetWriter:
       if e["task"] != self.task or e["image"].shape[1:] != (self.resolution, self.resolution, 3):
         raise ValueError(f"episode of seed {e['seed']} ({e['task']}, {e['image'].shape}) does not belong in "
                          f"a {self.task} dataset at resolution {self.resolution}")
+      if ("depth" in e) != self.depth:
+        raise ValueError(f"episode of seed {e['seed']} {'has' if 'depth' in e else 'lacks'} depth, the dataset "
+                         f"{'stores' if self.depth else 'does not store'} it")
     index = len(self.shards(split))
     name = shard_filename(self.task, split, index)
     final = os.path.join(self.path, name)
@@ -350,6 +366,7 @@ def write_dataset(path: str, splits: Mapping[str, Sequence[Mapping[str, Any]]],
   summary.setdefault("task", first["task"])
   summary.setdefault("level", first["level"])
   summary.setdefault("resolution", int(first["image"].shape[1]))
+  summary.setdefault("depth", "depth" in first)
   writer = DatasetWriter(path, summary, {k: len(v) for k, v in splits.items()})
   for split, episodes in splits.items():
     size = writer.state["splits"][split]["episodes_per_shard"]

@@ -58,6 +58,13 @@ def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any
     problems.append(f"{where}: image {image.dtype} {image.shape}, want uint8 [S,{res},{res},3]")
   if seg.dtype != np.uint8 or seg.shape != (num_steps, res, res):
     problems.append(f"{where}: segmentation {seg.dtype} {seg.shape}, want uint8 [{num_steps},{res},{res}]")
+  if config.get("depth", False):
+    depth = ep.get("depth")
+    if depth is None or depth.dtype != np.uint16 or depth.shape != (num_steps, res, res):
+      problems.append(f"{where}: depth {getattr(depth, 'dtype', None)} {getattr(depth, 'shape', None)}, "
+                      f"want uint16 [{num_steps},{res},{res}]")
+    elif not depth.any():
+      problems.append(f"{where}: depth is zero everywhere")
   if action.dtype != np.float32 or action.shape != (num_steps, 7):
     problems.append(f"{where}: action {action.dtype} {action.shape}, want float32 [{num_steps},7]")
     return problems
@@ -106,7 +113,7 @@ def validate(path: str) -> Dict[str, Any]:
     problems.append(f"TFDS cannot read the metadata: {str(e).strip().splitlines()[0]}")
     splits_info = {}
   seen: Dict[int, str] = {}
-  shard_reader = reader.ShardReader(int(config["resolution"]))
+  shard_reader = reader.ShardReader(int(config["resolution"]), bool(config.get("depth", False)))
   for split, info in state["splits"].items():
     shards = info["shards"]
     recorded = [len(s["seeds"]) for s in shards]

@@ -305,6 +305,12 @@ class RoboShapeEnv(BaseEnv):
       seg = self.seg_lut[ids]
     return rgb, seg
 
+  @staticmethod
+  def depth(obs) -> np.ndarray:
+    """The front camera's depth uint16 [N, H, W] in millimetres (an env made with obs_mode "rgb+depth+...")."""
+    depth = obs["sensor_data"]["front"]["depth"][..., 0].cpu().numpy().astype(np.int64)
+    return np.clip(depth, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
   def _get_obs_extra(self, info: dict):
     return dict(tcp_pose=self.agent.tcp.pose.raw_pose, goal_pos=self.goal_pos,
                 cube_pose=self.cube.pose.raw_pose)

@@ -193,8 +193,12 @@ class SpatialBroadcastDecoder(nn.Module):
   free learned vector per grid cell; with a full-resolution grid and 1x1 layers (kernel_size=1, strides all 1) the
   decoder is a per-pixel MLP of (slot, cell), which can draw a mask of any shape (e.g. a robot arm) at little cost.
 
-  slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W]),
-  with H = W = grid_size * prod(strides).
+  depth=True: every slot also gives a depth per pixel (a 1x1 layer on the CNN's features, free of the colour
+  mode), mixed by the same masks into depth [B, H, W] (SAVi++'s depth target: a cue other than colour, e.g. the
+  white robot stands out of the white table).
+
+  slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W]) (and depth [B, H, W],
+  slot_depth [B, K, H, W] with depth=True), with H = W = grid_size * prod(strides).
   """
   grid_size: int = 8
   features: Sequence[int] = (64, 64, 64, 64)
@@ -204,6 +208,7 @@ class SpatialBroadcastDecoder(nn.Module):
   rgb: str = "spatial"
   position: str = "coords"
   palette_size: int = 2
+  depth: bool = False
 
   @nn.compact
   def __call__(self, slots: jnp.ndarray) -> Dict[str, jnp.ndarray]:
@@ -220,6 +225,9 @@ class SpatialBroadcastDecoder(nn.Module):
       raise ValueError(f"unknown decoder position {self.position!r}; use one of {DECODER_POSITIONS}.")
     for i, (channels, stride) in enumerate(zip(self.features, self.strides)):
       x = nn.relu(Upsample(channels, self.kernel_size, stride, self.upsampling, name=f"up{i}")(x))
+    out = {}
+    if self.depth:
+      out["slot_depth"] = nn.Dense(1, name="depth")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
     if self.rgb == "spatial":
       x = nn.Dense(4, name="output")(x)                                    # [B*K, H, W, 4]
       x = x.reshape(batch, num_slots, *x.shape[1:])
@@ -250,7 +258,9 @@ class SpatialBroadcastDecoder(nn.Module):
       raise ValueError(f"unknown decoder rgb {self.rgb!r}; use one of {DECODER_RGBS}.")
     masks = jax.nn.softmax(alpha, axis=1)                                  # [B, K, H, W], sums to 1 over K
     recon = jnp.sum(masks[..., None] * rgb, axis=1)                        # [B, H, W, 3]
-    return {"recon": recon, "rgb": rgb, "masks": masks}
+    if self.depth:
+      out["depth"] = jnp.sum(masks * out["slot_depth"], axis=1)            # [B, H, W]
+    return {**out, "recon": recon, "rgb": rgb, "masks": masks}
 
 
 def pool_frames(frames: jnp.ndarray, factor: int) -> jnp.ndarray:
@@ -300,6 +310,7 @@ class SAVi(nn.Module):
   decoder_upsampling: str = "subpixel"
   decoder_rgb: str = "spatial"
   decoder_position: str = "coords"
+  decoder_depth: bool = False
   input_pool: int = 1
 
   def setup(self):
@@ -310,7 +321,7 @@ class SAVi(nn.Module):
                                self.predictor_mlp_size, self.predictor_identity_init, self.slot_gradient)
     self.decoder = SpatialBroadcastDecoder(self.decoder_grid_size, self.decoder_features, self.decoder_kernel_size,
                                            self.decoder_strides, self.decoder_upsampling, self.decoder_rgb,
-                                           self.decoder_position)
+                                           self.decoder_position, depth=self.decoder_depth)
 
   @property
   def output_resolution(self) -> int:
@@ -349,7 +360,8 @@ class SAVi(nn.Module):
     """video [B, T, H, W, 3] in [0, 1] (and optionally the first frame's slots [B, K, D]) -> dict:
 
     slots [B, T, K, D] (corrected), predicted [B, T, K, D] (each frame's prediction for the next one), and when
-    `decode`: recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3], masks [B, T, K, h, w] with h = H / input_pool.
+    `decode`: recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3], masks [B, T, K, h, w] with h = H / input_pool
+    (and depth [B, T, h, w], slot_depth [B, T, K, h, w] with decoder_depth).
     """
     batch = video.shape[0]
     if init_slots is None:
@@ -409,4 +421,5 @@ def build_model(savi_config, resolution: int) -> SAVi:
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.get("rgb", "spatial")),
       decoder_position=str(c.decoder.get("position", "coords")),
+      decoder_depth=float(c.train.get("depth_weight", 0.0)) > 0,
       input_pool=input_pool(c))

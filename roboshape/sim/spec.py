@@ -15,6 +15,7 @@ class EnvSpec:
 
   max_episode_steps: 0 uses the task's own horizon (>= 1.5x the expert's 95th-percentile episode length).
   sim_backend: "physx_cpu" (one env per worker) or "physx_cuda" where a GPU is present.
+  depth: also render the camera's depth (uint16 millimetres), stored with collected episodes.
   """
   task: str
   level: str = "train"
@@ -23,6 +24,7 @@ class EnvSpec:
   max_distractors: int = 4
   max_episode_steps: int = 0
   sim_backend: str = "physx_cpu"
+  depth: bool = False
 
   def __post_init__(self):
     try:
@@ -47,7 +49,8 @@ class EnvSpec:
     env = config.env
     return cls(task=config.task, level=level or "train", resolution=int(env.resolution),
                min_distractors=int(env.min_distractors), max_distractors=int(env.max_distractors),
-               max_episode_steps=int(env.max_episode_steps), sim_backend=str(env.sim_backend))
+               max_episode_steps=int(env.max_episode_steps), sim_backend=str(env.sim_backend),
+               depth=bool(env.get("depth", False)))
 
 
 def check_seeds(seeds: Iterable) -> List[int]:

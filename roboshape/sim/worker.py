@@ -5,7 +5,8 @@ never imports TensorFlow or JAX). Requests are (command, argument) tuples; repli
 ("error", one-line message). Payloads are numpy arrays and python scalars only.
 
 Commands:
-  collect seed    -> episode dict of contract A (the oracle expert run from `seed`)
+  collect seed    -> episode dict of contract A (the oracle expert run from `seed`; with depth uint16 [T+1, H, W]
+                     in millimetres when the spec asks for depth)
   reset seed      -> frame dict (image, segmentation, success, done, elapsed)
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
   close           -> exits
@@ -36,13 +37,14 @@ class Worker:
     backend = {"cpu": "physx_cpu", "gpu": "physx_cuda"}.get(spec["sim_backend"], spec["sim_backend"])
     self.env = envs.make_env(spec["task"], spec["level"], resolution=spec["resolution"],
                              min_distractors=spec["min_distractors"], max_distractors=spec["max_distractors"],
-                             sim_backend=backend)
+                             sim_backend=backend,
+                             obs_mode="rgb+depth+segmentation" if spec.get("depth") else "rgb+segmentation")
     self.task = self.env.unwrapped
     self.spec = spec
     self.horizon = spec["max_episode_steps"] or self.task.HORIZON
     self.expert = experts.make_expert(spec["task"], self.task.num_envs, self.task.device)
     self.env_version = f"{envs.ENV_VERSION}+mani_skill-{mani_skill.__version__}"
-    self._frame = None
+    self._frame = self._depth = None
     self.elapsed, self.success, self.done = 0, False, True
     # Every reset rebuilds the scene, and ManiSkill then runs gc.collect(), which scans every object of this process:
     # about 160 ms of a 230 ms reset. Freezing what start-up built (modules, the env) leaves it out of those scans.
@@ -53,6 +55,7 @@ class Worker:
 
   def _observe(self, obs):
     rgb, seg = self.task.frames(obs)
+    self._depth = self.task.depth(obs)[0] if self.spec.get("depth") else None
     return rgb[0], seg[0]
 
   def _reset(self, seed: int):
@@ -90,19 +93,23 @@ class Worker:
     """Runs the oracle expert from `seed` until success or the horizon; the whole episode of contract A."""
     np = self.np
     image, seg = self._reset(seed)
-    images, segs, actions, rewards = [image], [seg], [], []
+    images, segs, depths, actions, rewards = [image], [seg], [self._depth], [], []
     while not self.done:
       action = self.expert.act(self.task.privileged_state()).cpu().numpy().astype(np.float32)[0]
       (image, seg), reward = self._step(action)
       images.append(image)
       segs.append(seg)
+      depths.append(self._depth)
       actions.append(action)
       rewards.append(reward)
-    return dict(task=self.spec["task"], level=self.spec["level"], seed=int(seed), success=self.success,
-                env_version=self.env_version, terminated=self.success,
-                image=np.stack(images).astype(np.uint8), segmentation=np.stack(segs).astype(np.uint8),
-                action=np.stack(actions).astype(np.float32).reshape(-1, 7),
-                reward=np.asarray(rewards, np.float32))
+    episode = dict(task=self.spec["task"], level=self.spec["level"], seed=int(seed), success=self.success,
+                   env_version=self.env_version, terminated=self.success,
+                   image=np.stack(images).astype(np.uint8), segmentation=np.stack(segs).astype(np.uint8),
+                   action=np.stack(actions).astype(np.float32).reshape(-1, 7),
+                   reward=np.asarray(rewards, np.float32))
+    if self.spec.get("depth"):
+      episode["depth"] = np.stack(depths).astype(np.uint16)
+    return episode
 
 
 def serve(conn, spec: dict) -> int:

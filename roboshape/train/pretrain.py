@@ -99,7 +99,10 @@ class _Compiled:
     self.mesh = Mesh(np.array(jax.devices()), ("data",))
     self.replicated = NamedSharding(self.mesh, PartitionSpec())
     self.batch_sharding = NamedSharding(self.mesh, PartitionSpec("data"))
-    self.train_step = jax.jit(self._train_step, in_shardings=(self.replicated, self.batch_sharding, self.replicated),
+    self.depth_weight = float(c.train.get("depth_weight", 0.0))
+    self.train_step = jax.jit(self._train_step,
+                              in_shardings=(self.replicated, self.batch_sharding, self.batch_sharding,
+                                            self.replicated),
                               out_shardings=(self.replicated, self.replicated))
     self.eval_video = jax.jit(self._eval_video)
 
@@ -110,22 +113,30 @@ class _Compiled:
     params = self.model.init({"params": params_key, "slots": slots_key}, dummy)["params"]
     return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
 
-  def _train_step(self, state, video, key):
-    """(state, video uint8 [B, L, H, W, 3], key) -> (state, metrics)."""
+  def _train_step(self, state, video, depth, key):
+    """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, key) -> (state, metrics).
+
+    The loss is the RGB reconstruction MSE, plus train.depth_weight times the depth MSE (in metres) when the
+    weight is > 0 (the model then predicts depth; `depth` must be given).
+    """
     step_key = jax.random.fold_in(key, state["step"])
 
     def loss_fn(params):
       frames = _to_float(video)
       target = savi.pool_frames(frames, self.model.input_pool)
       out = self.model.apply({"params": params}, frames, rngs={"slots": step_key})
-      mse = jnp.mean(jnp.square(out["recon"] - target))
-      return mse, mse
+      terms = {"recon_mse": jnp.mean(jnp.square(out["recon"] - target))}
+      loss = terms["recon_mse"]
+      if self.depth_weight > 0:
+        metres = savi.pool_frames(depth.astype(jnp.float32)[..., None] / 1000.0, self.model.input_pool)[..., 0]
+        terms["depth_mse"] = jnp.mean(jnp.square(out["depth"] - metres))
+        loss = loss + self.depth_weight * terms["depth_mse"]
+      return loss, terms
 
-    (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+    (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
     updates, opt_state = self.optimizer.update(grads, state["opt_state"], state["params"])
     params = optax.apply_updates(state["params"], updates)
-    metrics = {"loss": loss, "recon_mse": mse, "grad_norm": optax.tree.norm(grads),
-               "lr": self.schedule(state["step"])}
+    metrics = {"loss": loss, **terms, "grad_norm": optax.tree.norm(grads), "lr": self.schedule(state["step"])}
     return {"step": state["step"] + 1, "params": params, "opt_state": opt_state}, metrics
 
   def initial_slots(self, params, batch_size: int) -> jax.Array:
@@ -197,7 +208,7 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
   """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <workdir>/savi/checkpoints.
 
   batches_from(start_batch) yields the batches from index start_batch on (dicts with video uint8 [B, L, H, W, 3]
-  and episode_seed int [B]). Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
+  and episode_seed int [B], and depth uint16 [B, L, H, W] when savi.train.depth_weight > 0). Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
   # pylint: disable=import-outside-toplevel
   from tensorboardX import SummaryWriter
@@ -231,8 +242,14 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
         if step == start and tuple(np.shape(batch["video"])) != _clip_shape(config):
           raise UserError(f"the dataset's clips have shape {tuple(np.shape(batch['video']))}, the SAVi config expects "
                           f"{_clip_shape(config)} [B, L, H, W, 3]: set --config.env.resolution to the dataset's.")
+        if step == start and comp.depth_weight > 0 and "depth" not in batch:
+          raise UserError("savi.train.depth_weight > 0 needs a dataset with depth: collect one with "
+                          "--config.env.depth=True (into another --config.data.dir), or set the weight to 0.")
         video = jax.make_array_from_process_local_data(comp.batch_sharding, np.asarray(batch["video"]))
-        new_state, metrics = comp.train_step(state, video, step_key)
+        depth = None
+        if comp.depth_weight > 0:
+          depth = jax.make_array_from_process_local_data(comp.batch_sharding, np.asarray(batch["depth"]))
+        new_state, metrics = comp.train_step(state, video, depth, step_key)
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         if not np.isfinite(metrics["loss"]):
           ckpt.wait()
