@@ -128,6 +128,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           warmup_steps=_pick(variant, 2500, 200, 2),
           clip_norm=0.05,         # global gradient norm
           depth_weight=0.0,       # > 0: also reconstruct depth (metres), weighted so; needs env.depth=True data
+          rgb_weight=1.0,         # weight of the RGB reconstruction MSE (0 with depth_weight > 0: depth alone)
           checkpoint_every=_pick(variant, 1000, 250, 10),
           keep_checkpoints=3,
           log_every=_pick(variant, 50, 10, 1),

@@ -325,6 +325,12 @@ def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   for _ in range(25):
     new_state, last = comp.train_step(new_state, video, depth, key)
   assert float(last["depth_mse"]) < 0.3 * want
+  config.savi.train.rgb_weight = 0.0            # depth alone: the loss is the weighted depth MSE only
+  _, alone = pretrain.compiled(config).train_step(state, video, depth, key)
+  np.testing.assert_allclose(float(alone["loss"]), 0.5 * want, rtol=1e-4)
+  config.savi.train.depth_weight = 0.0
+  with pytest.raises(UserError, match="one of them > 0"):
+    pretrain.validate_config(config)
 
 
 def test_a_depth_weight_without_depth_in_the_data_is_a_user_error(tmp_path):

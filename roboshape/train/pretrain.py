@@ -67,6 +67,10 @@ def validate_config(config) -> None:
     raise UserError(f"the SAVi decoder outputs {out}x{out} images (savi.decoder.grid_size * prod(strides)) but "
                     f"the frames it models are {want}x{want} (env.resolution {config.env.resolution} / savi.pool "
                     f"{pool}); set --config.savi.decoder.grid_size=0 (automatic) or change savi.decoder.strides.")
+  rgb_weight, depth_weight = float(c.train.get("rgb_weight", 1.0)), float(c.train.get("depth_weight", 0.0))
+  if rgb_weight < 0 or depth_weight < 0 or rgb_weight + depth_weight <= 0:
+    raise UserError(f"savi.train.rgb_weight={rgb_weight} and savi.train.depth_weight={depth_weight} must be >= 0, "
+                    "and one of them > 0.")
   devices = jax.local_device_count()
   if c.train.batch_size % devices:
     raise UserError(f"savi.train.batch_size={c.train.batch_size} does not split over {devices} devices; "
@@ -100,6 +104,7 @@ class _Compiled:
     self.replicated = NamedSharding(self.mesh, PartitionSpec())
     self.batch_sharding = NamedSharding(self.mesh, PartitionSpec("data"))
     self.depth_weight = float(c.train.get("depth_weight", 0.0))
+    self.rgb_weight = float(c.train.get("rgb_weight", 1.0))
     self.train_step = jax.jit(self._train_step,
                               in_shardings=(self.replicated, self.batch_sharding, self.batch_sharding,
                                             self.replicated),
@@ -116,8 +121,9 @@ class _Compiled:
   def _train_step(self, state, video, depth, key):
     """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, key) -> (state, metrics).
 
-    The loss is the RGB reconstruction MSE, plus train.depth_weight times the depth MSE (in metres) when the
-    weight is > 0 (the model then predicts depth; `depth` must be given).
+    The loss is train.rgb_weight (1) times the RGB reconstruction MSE, plus train.depth_weight times the depth MSE
+    (in metres) when that weight is > 0 (the model then predicts depth; `depth` must be given). rgb_weight=0 with a
+    depth weight trains on depth alone (SAVi++'s target: the slots then group by shape, not by colour).
     """
     step_key = jax.random.fold_in(key, state["step"])
 
@@ -126,7 +132,7 @@ class _Compiled:
       target = savi.pool_frames(frames, self.model.input_pool)
       out = self.model.apply({"params": params}, frames, rngs={"slots": step_key})
       terms = {"recon_mse": jnp.mean(jnp.square(out["recon"] - target))}
-      loss = terms["recon_mse"]
+      loss = self.rgb_weight * terms["recon_mse"]
       if self.depth_weight > 0:
         metres = savi.pool_frames(depth.astype(jnp.float32)[..., None] / 1000.0, self.model.input_pool)[..., 0]
         terms["depth_mse"] = jnp.mean(jnp.square(out["depth"] - metres))
