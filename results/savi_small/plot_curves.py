@@ -33,17 +33,20 @@ RUNS = {  # file -> legend
     "small_v8_6slots_shaded.json": "6 slots, shaded colour per slot, 4 clips x 6, launch.py",
     "small_v9_9slots_shaded.json": "9 slots, shaded colour per slot, 4 clips x 6, launch.py",
     "small_v10_pixel_mlp_decoder.json": "v10, v7 + a per-pixel MLP decoder (learned vector per pixel), launch.py",
-    "small_v11_learned_position.json": "v11, the :small now: v7 + a learned vector per 8x8 decoder grid cell, launch.py",
     "small_v12_learned_shaded.json": "v12, v11 + a shaded colour per slot, launch.py",
     "small_v13_7slots.json": "v13, v11 with 7 slots, launch.py",
     "small_v11x_12000.json": "v11 resumed at step 8000 on a 12 000-step schedule, launch.py",
     "small_v14_palette.json": "v14, v11 with two colours per slot (hard pick per pixel), launch.py",
     "small_v15_dark_shade.json": "v15, v11 with its colour or a dark shade of it per pixel, launch.py",
+    "small_v18_depth_only.json": "v18, v11 trained on depth alone (rgb_weight 0), 6000-step schedule, launch.py",
+    "small_v11_learned_position.json": "v11, the :small now: v7 + a learned vector per 8x8 decoder grid cell, launch.py",
+    "small_v16_depth.json": "v16, v11 + depth as a second target (weight 1), launch.py",
+    "small_v17_depth_shaded.json": "v17, v11 + depth (weight 1) + a shaded colour per slot, launch.py",
 }
 
 
 def main():
-  fig, axes = plt.subplots(1, 2, figsize=(12, 6.4), dpi=130)
+  fig, axes = plt.subplots(1, 2, figsize=(12, 7.6), dpi=130)
   colours = plt.get_cmap("tab20")
   for i, (name, label) in enumerate(RUNS.items()):
     with open(os.path.join(HERE, name)) as f:
@@ -64,7 +67,7 @@ def main():
     ax.set_xlabel("training step")
     ax.grid(alpha=0.3)
   fig.legend(*axes[0].get_legend_handles_labels(), fontsize=7, loc="lower center", ncol=2, frameon=False)
-  fig.subplots_adjust(bottom=0.36, top=0.92, wspace=0.22)
+  fig.subplots_adjust(bottom=0.43, top=0.93, wspace=0.22)
   fig.suptitle("SAVi on the :small push set (8 validation episodes x 24 frames), 2-core CPU")
   out = os.path.join(HERE, "fg_ari_curves.png")
   fig.savefig(out)
