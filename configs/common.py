@@ -38,7 +38,7 @@ def env_config(variant: str) -> ml_collections.ConfigDict:
       max_distractors=4,
       max_episode_steps=0,      # 0: the task's own horizon (>= 1.5x the expert's 95th percentile)
       sim_backend="physx_cpu",  # "physx_cuda" batches envs in one process where a GPU is present
-      depth=False,              # also store the camera's depth (uint16 mm) in the dataset (savi.loss.depth_weight)
+      depth=False,              # also store the camera's depth (uint16 mm) in the dataset (savi.train.depth_weight)
   ))
 
 
