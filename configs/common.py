@@ -78,7 +78,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
   learned initial slots without noise, 3 slot-attention iterations with the gradient of the last one only, a
   predictor that starts as LayerNorm, and clips of 6 frames x 4 (0.5 s per step alone on the 2-core CPU, 8000
   steps ~ 70 min), and reconstructs the depth as well (train.depth_weight=0.25, env.depth=True): validation FG-ARI
-  0.611 at step 2500 (results/savi_small/README.md has every curve).
+  0.611 at step 2500, 0.58-0.60 at 3000-3500 (results/savi_small/README.md has every curve).
   tiny: a toy model for tests and `make demo`.
   """
   paper = variant == "paper"

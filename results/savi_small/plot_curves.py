@@ -38,10 +38,11 @@ RUNS = {  # file -> legend
     "small_v11x_12000.json": "v11 resumed at step 8000 on a 12 000-step schedule, launch.py",
     "small_v14_palette.json": "v14, v11 with two colours per slot (hard pick per pixel), launch.py",
     "small_v15_dark_shade.json": "v15, v11 with its colour or a dark shade of it per pixel, launch.py",
+    "small_v17_depth_shaded.json": "v17, v11 + depth (weight 1) + a shaded colour per slot, launch.py",
     "small_v18_depth_only.json": "v18, v11 trained on depth alone (rgb_weight 0), 6000-step schedule, launch.py",
     "small_v11_learned_position.json": "v11, the :small now: v7 + a learned vector per 8x8 decoder grid cell, launch.py",
     "small_v16_depth.json": "v16, v11 + depth as a second target (weight 1), launch.py",
-    "small_v17_depth_shaded.json": "v17, v11 + depth (weight 1) + a shaded colour per slot, launch.py",
+    "small_v19_depth_quarter.json": "v19, v11 + depth as a second target (weight 0.25), launch.py",
 }
 
 
