@@ -397,6 +397,13 @@ def input_pool(savi_config) -> int:
   return int(savi_config.get("pool", 1))
 
 
+def loss_weights(savi_config) -> Tuple[float, float]:
+  """(rgb, depth): the weights config.savi.train.rgb_weight (1 when absent) and depth_weight (0 when absent); the
+  model predicts depth when the depth weight is > 0."""
+  train = savi_config.train
+  return float(train.get("rgb_weight", 1.0)), float(train.get("depth_weight", 0.0))
+
+
 def decoder_grid_size(savi_config, resolution: int) -> int:
   """The broadcast grid's side: config.savi.decoder.grid_size, or (resolution / pool) / prod(strides) when it is 0."""
   grid = int(savi_config.decoder.grid_size)
@@ -421,5 +428,5 @@ def build_model(savi_config, resolution: int) -> SAVi:
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.get("rgb", "spatial")),
       decoder_position=str(c.decoder.get("position", "coords")),
-      decoder_depth=float(c.train.get("depth_weight", 0.0)) > 0,
+      decoder_depth=loss_weights(c)[1] > 0,
       input_pool=input_pool(c))

@@ -67,7 +67,7 @@ def validate_config(config) -> None:
     raise UserError(f"the SAVi decoder outputs {out}x{out} images (savi.decoder.grid_size * prod(strides)) but "
                     f"the frames it models are {want}x{want} (env.resolution {config.env.resolution} / savi.pool "
                     f"{pool}); set --config.savi.decoder.grid_size=0 (automatic) or change savi.decoder.strides.")
-  rgb_weight, depth_weight = float(c.train.get("rgb_weight", 1.0)), float(c.train.get("depth_weight", 0.0))
+  rgb_weight, depth_weight = savi.loss_weights(c)
   if rgb_weight < 0 or depth_weight < 0 or rgb_weight + depth_weight <= 0:
     raise UserError(f"savi.train.rgb_weight={rgb_weight} and savi.train.depth_weight={depth_weight} must be >= 0, "
                     "and one of them > 0.")
@@ -103,8 +103,7 @@ class _Compiled:
     self.mesh = Mesh(np.array(jax.devices()), ("data",))
     self.replicated = NamedSharding(self.mesh, PartitionSpec())
     self.batch_sharding = NamedSharding(self.mesh, PartitionSpec("data"))
-    self.depth_weight = float(c.train.get("depth_weight", 0.0))
-    self.rgb_weight = float(c.train.get("rgb_weight", 1.0))
+    self.rgb_weight, self.depth_weight = savi.loss_weights(c)
     self.train_step = jax.jit(self._train_step,
                               in_shardings=(self.replicated, self.batch_sharding, self.batch_sharding,
                                             self.replicated),
@@ -214,7 +213,8 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
   """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <workdir>/savi/checkpoints.
 
   batches_from(start_batch) yields the batches from index start_batch on (dicts with video uint8 [B, L, H, W, 3]
-  and episode_seed int [B], and depth uint16 [B, L, H, W] when savi.train.depth_weight > 0). Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
+  and episode_seed int [B], and depth uint16 [B, L, H, W] when savi.train.depth_weight > 0).
+  Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
   # pylint: disable=import-outside-toplevel
   from tensorboardX import SummaryWriter
