@@ -88,7 +88,7 @@ def main():
     episodes = args.episodes or 2 * n
     # Warm-up: worker start, shaders, the policy's compilation for this batch size.
     policy.reset(batch_size=n)
-    frames = pool.reset([10**9 + 900_000 + i for i in range(n)])
+    frames = pool.reset([10**9 + 900_000 + i for i in range(n)])["image"]
     for _ in range(3):
       pool.step(np.clip(policy.act_batch(frames), -1, 1))
     list(pool.collect([2 * 10**9 + i for i in range(n)]))

@@ -17,8 +17,9 @@ import ast
 
 import ml_collections
 
+from roboshape import encoders
+
 TASKS = ("push", "pick", "place")
-ENCODERS = ("savi", "dino", "r3m")
 VARIANTS = ("paper", "small", "tiny")
 MODIFIERS = {"chunk": 8}   # variant suffix -> policy.chunk
 LEVELS = ("train", "L1", "L2", "L3")
@@ -222,12 +223,12 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
   scale, _, modifier = variant.partition("_")
   if task not in TASKS:
     raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}.")
-  if encoder not in ENCODERS:
-    raise ValueError(f"unknown encoder {encoder!r}; choose one of {', '.join(ENCODERS)}.")
+  if encoder not in encoders.names():
+    raise ValueError(f"unknown encoder {encoder!r}; choose one of {', '.join(encoders.names())}.")
   if scale not in VARIANTS or (modifier and modifier not in MODIFIERS):
     raise ValueError(f"unknown variant {variant!r}; use configs/<exp>.py:<variant> with one of {', '.join(VARIANTS)}"
                      f", optionally suffixed with {', '.join('_' + m for m in MODIFIERS)}.")
-  stages = STAGES if encoder == "savi" else tuple(s for s in STAGES if s != "pretrain")
+  stages = STAGES if encoders.get(encoder).pretrain else tuple(s for s in STAGES if s != "pretrain")
   config = ml_collections.ConfigDict(dict(
       name=f"{task}_{encoder}",
       task=task,

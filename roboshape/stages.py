@@ -9,6 +9,7 @@ import json
 import os
 import time
 
+from roboshape import encoders
 from roboshape import fileio
 from roboshape.cli import UserError
 
@@ -45,18 +46,19 @@ def grid_configs(config, workdir: str):
 
   A grid config (configs/reproduce.py) is an experiment config plus `grid.tasks` and `grid.encoders`; each run
   is that config with its task and encoder set, in <workdir>/<task>_<encoder>/, reading the task's dataset from
-  <workdir>/data/<task> (shared by the task's runs; collected once). SAVi runs come first within a task.
+  <workdir>/data/<task> (shared by the task's runs; collected once). Runs of encoders with a pretraining stage (SAVi) come first within a task.
   """
   import ml_collections  # pylint: disable=import-outside-toplevel
   base = config.to_dict()
   base.pop("grid")
   data_root = config.data.dir or os.path.join(workdir, "data")
-  encoders = sorted(config.grid.encoders, key=lambda e: e != "savi")
+  order = sorted(config.grid.encoders, key=lambda e: not encoders.get(e).pretrain)
   for task in config.grid.tasks:
-    for encoder in encoders:
+    for encoder in order:
       sub = ml_collections.ConfigDict(base)
       sub.task, sub.encoder, sub.name = task, encoder, f"{task}_{encoder}"
-      sub.stages = tuple(s for s in config.stages if s != "report" and (encoder == "savi" or s != "pretrain"))
+      pretrains = encoders.get(encoder).pretrain
+      sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
       sub.data.dir = os.path.join(data_root, task)
       yield task, encoder, sub, os.path.join(workdir, f"{task}_{encoder}")
 

@@ -18,6 +18,7 @@ import pytest
 
 from configs import common
 from conftest import _synthetic_episode
+from roboshape import encoders
 from roboshape.cli import UserError
 from roboshape.data import browse
 from roboshape.data import collect
@@ -25,6 +26,7 @@ from roboshape.data import dataset_path
 from roboshape.data import reader
 from roboshape.data import rlds
 from roboshape.data import validate
+from roboshape.envs import state as state_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TESTS = os.path.dirname(os.path.abspath(__file__))
@@ -358,6 +360,8 @@ def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
               seg=steps[0]["observation"]["segmentation"].shape.as_list(),
               depth=[steps[0]["observation"]["depth"].dtype.name,
                      steps[0]["observation"]["depth"].shape.as_list()],
+              state=[steps[0]["observation"]["state"].dtype.name,
+                     steps[0]["observation"]["state"].shape.as_list()],
               first=[bool(s["is_first"]) for s in steps].index(True), last=bool(steps[-1]["is_last"]),
               amax=max(float(abs(s["action"].numpy()).max()) for s in steps)))
       assert not any(m.startswith("roboshape") for m in sys.modules)
@@ -376,6 +380,7 @@ def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
   for e in got["train"] + got["val"]:
     assert e["success"] and e["task"] == "push" and e["env_version"].startswith("roboshape-envs")
     assert e["image"] == ["uint8", [32, 32, 3]] and e["seg"] == [32, 32] and e["depth"] == ["uint16", [32, 32]]
+    assert e["state"] == ["float32", [65]]
     assert e["first"] == 0 and e["last"] and 0 < e["amax"] <= 1
   assert validate.main([real_dataset]) == 0
 
@@ -386,6 +391,18 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   np.testing.assert_array_equal(stored["image"], again["image"])
   np.testing.assert_array_equal(stored["segmentation"], again["segmentation"])
   np.testing.assert_array_equal(stored["depth"], again["depth"])
+  np.testing.assert_array_equal(stored["state"], again["state"])
+  # The state token a policy is trained on (from the dataset) is the one closed-loop control computes (from a worker).
+  enc = encoders.get("state").build(None, "")
+  obs = sim_pool.reset([stored["seed"]])
+  np.testing.assert_array_equal(np.asarray(enc.encode_episode({"state": stored["state"]}))[0],
+                                np.asarray(enc.encode_batch({"state": obs["state"][:, None]}))[0, 0])
+  cuts = state_lib.slices()
+  first = stored["state"][0]
+  assert first[cuts["cube_pos"]][2] == pytest.approx(0.02, abs=2e-3)    # the cube rests on the table
+  present = first[cuts["distractors"]].reshape(-1, 5)[:, 4]
+  visible = {i for i in np.unique(stored["segmentation"]) if i >= 5}
+  assert present.sum() >= len(visible) >= 1 and set(np.flatnonzero(present) + 5) >= visible
   np.testing.assert_array_equal(stored["action"][:-1], again["action"])
   np.testing.assert_array_equal(stored["reward"][:-1], again["reward"])
   assert set(np.unique(stored["segmentation"])) >= {1, 2, 3}  # table, robot and cube are in view

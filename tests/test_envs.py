@@ -63,13 +63,15 @@ def _child(out_path: str) -> None:
                "above_bin": [goal[0], goal[1], goal[2] + 0.2], "beside_bin": [goal[0] + 0.1, goal[1], half]}
     facts["success"][name] = {case: place_cube(task, p) for case, p in cases.items()}
     expert = experts.make_expert(name, 1)
-    results = []
+    results, seen = [], []
     for seed in EXPERT_SEEDS:
       env.reset(seed=seed)
       expert.reset()
       ok = False
       for _ in range(task.HORIZON):
-        action = expert.act(task.privileged_state())
+        state = task.privileged_state()
+        action = expert.act(state)
+        seen.append(({k: v.clone() for k, v in state.items()}, action.clone()))
         assert torch.all(action.abs() <= 1.0)
         _, _, _, _, info = env.step(action)
         if bool(info["success"][0]):
@@ -77,6 +79,10 @@ def _child(out_path: str) -> None:
           break
       results.append(ok)
     facts["expert"][name] = results
+    # Memoryless: a fresh expert shown the same states in reverse order repeats every action of the episodes.
+    fresh = experts.make_expert(name, 1)
+    facts.setdefault("memoryless", {})[name] = max(
+        float((fresh.act(state) - action).abs().max()) for state, action in reversed(seen))
     # Batched over envs: one expert for two stacked states acts as two single-env experts do.
     states = []
     for seed in EXPERT_SEEDS:
@@ -218,6 +224,12 @@ def test_success_detection_on_scripted_states(facts):
 @pytest.mark.parametrize("task", envs.TASKS)
 def test_expert_solves_the_task(facts, task):
   assert facts["expert"][task] == [True] * len(EXPERT_SEEDS)
+
+
+@pytest.mark.parametrize("task", envs.TASKS)
+def test_expert_acts_on_the_state_alone(facts, task):
+  # Its actions are a function of the state it is shown, not of the states it saw before: a policy can infer them.
+  assert facts["memoryless"][task] < 1e-6
 
 
 @pytest.mark.parametrize("task", envs.TASKS)

@@ -61,7 +61,8 @@ class FakePool:
     self.elapsed = np.zeros(len(seeds), np.int32)
     self.done = np.zeros(len(seeds), bool)
     self.success = np.zeros(len(seeds), bool)
-    return self._frames()
+    return dict(image=self._frames(), success=self.success.copy(), done=self.done.copy(),
+                elapsed=self.elapsed.copy())
 
   def step(self, actions):
     assert actions.shape == (len(self.seeds), 7) and actions.dtype == np.float32
@@ -103,6 +104,8 @@ class FakePolicy:
     self.calls += 1
     if self.interrupt_after is not None and self.calls > self.interrupt_after:
       raise KeyboardInterrupt
+    assert set(frames) == {"image"}
+    frames = frames["image"]
     self.batch_sizes.add(frames.shape[0])
     return np.full((frames.shape[0], 7), 1.5, np.float32)
 

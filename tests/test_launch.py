@@ -7,6 +7,7 @@ import sys
 import pytest
 
 from configs import common
+from roboshape import encoders
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -60,7 +61,7 @@ def test_variants_scale_the_experiment():
 
 def test_every_experiment_config_loads():
   for task in common.TASKS:
-    for encoder in common.ENCODERS:
+    for encoder in encoders.names():
       path = os.path.join(ROOT, "configs", f"{task}_{encoder}.py")
       namespace = {}
       with open(path) as f:

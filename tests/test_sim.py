@@ -74,7 +74,9 @@ def test_collected_episodes_follow_the_contract(pool, episodes):
 
 def test_closed_loop_replays_an_expert_episode_bit_for_bit(pool, episodes):
   e = episodes[0]
-  frames = pool.reset([e["seed"], e["seed"]])
+  obs = pool.reset([e["seed"], e["seed"]])
+  frames = obs["image"]
+  np.testing.assert_array_equal(obs["state"][0], e["state"][0])   # the state the dataset stores, from another worker
   assert frames.shape == (2, RESOLUTION, RESOLUTION, 3) and frames.dtype == np.uint8
   np.testing.assert_array_equal(frames[0], e["image"][0])  # same seed, another process: same first frame
   np.testing.assert_array_equal(frames[1], e["image"][0])
@@ -85,6 +87,7 @@ def test_closed_loop_replays_an_expert_episode_bit_for_bit(pool, episodes):
   assert out["success"].tolist() == [True, False] and out["done"].tolist() == [True, False]
   np.testing.assert_array_equal(out["image"][0], e["image"][-1])
   np.testing.assert_array_equal(out["segmentation"][0], e["segmentation"][-1])
+  np.testing.assert_array_equal(out["state"][0], e["state"][-1])
   again = pool.step(np.ones((2, 7), np.float32))  # a done env ignores its action
   np.testing.assert_array_equal(again["image"][0], out["image"][0])
   assert again["elapsed"].tolist() == [steps, steps + 1] and again["done"][0]
@@ -123,5 +126,5 @@ def test_a_dead_worker_raises_with_its_stderr_then_restart(pool):
   alive = pool._procs[0].popen.pid  # pylint: disable=protected-access
   pool.restart()  # replaces the dead worker only
   assert pool._procs[0].popen.pid == alive  # pylint: disable=protected-access
-  frames = pool.reset([5, 6])
+  frames = pool.reset([5, 6])["image"]
   assert frames.shape == (2, RESOLUTION, RESOLUTION, 3)

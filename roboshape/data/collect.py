@@ -60,6 +60,9 @@ def config_summary(config) -> Dict[str, Any]:
       "train_seed_base": SEED_BASES["train"],
       "val_seed_base": SEED_BASES["val"],
       "depth": bool(config.env.get("depth", False)),
+      # Every dataset collected now stores the privileged state; not compared (_SUMMARY_FIELDS): a dataset of an
+      # earlier version, without it, serves every encoder that does not need it.
+      "state": True,
   }
 
 
@@ -170,6 +173,8 @@ class _SplitCollector:
     if seed < self.cursor or seed in self.buffer or seed >= self.requested_until:
       return  # a duplicate (e.g. after a worker restart)
     success = bool(episode["success"])
+    if not self.writer.has_state:   # resuming a dataset begun before the state was stored
+      episode = {k: v for k, v in episode.items() if k != "state"}
     self.buffer[seed] = episode if success else None
     self.frames += int(episode["image"].shape[0])
     self.new_successes += success

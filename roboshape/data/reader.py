@@ -44,9 +44,9 @@ def _flatten(example: Dict[str, Any]) -> Dict[str, tf.Tensor]:
   """An RLDS episode (steps as a nested tf.data.Dataset) -> one dict of [S, ...] tensors."""
   steps = example["steps"].batch(_MAX_STEPS).get_single_element()
   meta = example["episode_metadata"]
-  depth = {"depth": steps["observation"]["depth"]} if "depth" in steps["observation"] else {}
+  optional = {k: steps["observation"][k] for k in ("depth", "state") if k in steps["observation"]}
   return {
-      **depth,
+      **optional,
       "image": steps["observation"]["image"],
       "segmentation": steps["observation"]["segmentation"],
       "action": steps["action"],
@@ -104,9 +104,9 @@ class ShardReader:
   (or another tf.errors.OpError) while iterating.
   """
 
-  def __init__(self, resolution: int, depth: bool = False):
+  def __init__(self, resolution: int, depth: bool = False, state: bool = False):
     from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
-    feats = rlds.features(resolution, depth)
+    feats = rlds.features(resolution, depth, state)
     self._decode = tf.function(lambda record: _flatten(feats.deserialize_example(record)))
 
   def read(self, file: str) -> Iterator[Dict[str, Any]]:

@@ -10,6 +10,9 @@ Each example is one episode (RLDS): `steps` with S = T + 1 steps and `episode_me
                                                    4 target/bin, 5+i distractor i)
   steps/observation/depth         uint16 [H, W]    camera depth in millimetres (only in datasets collected with
                                                    env.depth=True; roboshape.json's config says "depth": true)
+  steps/observation/state         float32 [65]     the privileged simulator state (roboshape/envs/state.py: tcp pose,
+                                                   gripper, arm joints, cube pose, goal, distractors); in datasets
+                                                   of roboshape.json "state": true (all collected since it exists)
   steps/action                    float32 [7]      the action the env executed; zeros on the last step
   steps/reward                    float32          reward of the step's action; 0 on the last step
   steps/discount                  float32          1
@@ -39,6 +42,7 @@ from tensorflow_datasets.core import example_serializer
 from roboshape import data as data_lib
 from roboshape import fileio
 from roboshape.cli import UserError
+from roboshape.envs import state as state_lib
 
 LAYOUT = "roboshape-rlds-1"
 FILENAME_TEMPLATE = "{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_INDEX}"
@@ -46,14 +50,15 @@ ACTION_DIM = 7
 DESCRIPTION = (
     "RoboShape expert demonstrations (Franka Panda, ManiSkill3) in the RLDS layout: one example per episode with "
     "`steps` (observation/image uint8 HxWx3, observation/segmentation uint8 HxW object ids, with env.depth also "
-    "observation/depth uint16 HxW millimetres, action float32[7] as "
-    "executed, reward, discount, is_first, is_last, is_terminal) and `episode_metadata` (task, level, seed, success, "
+    "observation/depth uint16 HxW millimetres, observation/state float32[65] the privileged simulator state, "
+    "action float32[7] as executed, reward, discount, is_first, is_last, is_terminal) and `episode_metadata` (task, level, seed, success, "
     "env_version). The last step of an episode holds the final observation and a zero action. Only successful "
     "expert episodes are stored; metadata.json holds the collection config.")
 
 
-def features(resolution: int, depth: bool = False) -> tfds.features.FeaturesDict:
-  """The TFDS features of an episode at `resolution` x `resolution` pixels (with observation/depth if `depth`)."""
+def features(resolution: int, depth: bool = False, state: bool = False) -> tfds.features.FeaturesDict:
+  """The TFDS features of an episode at `resolution` x `resolution` pixels (with observation/depth if `depth`,
+  observation/state if `state`)."""
   scalar = tfds.features.Scalar
   observation = {
       "image": tfds.features.Image(shape=(resolution, resolution, 3), dtype=np.uint8, encoding_format="png"),
@@ -63,6 +68,9 @@ def features(resolution: int, depth: bool = False) -> tfds.features.FeaturesDict
   if depth:
     observation["depth"] = tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint16,
                                                 encoding=tfds.features.Encoding.ZLIB)
+  if state:
+    observation["state"] = tfds.features.Tensor(shape=(state_lib.DIM,), dtype=np.float32,
+                                                doc=state_lib.describe())
   return tfds.features.FeaturesDict({
       "steps": tfds.features.Dataset({
           "observation": tfds.features.FeaturesDict(observation),
@@ -103,6 +111,11 @@ def to_rlds(episode: Mapping[str, Any]) -> Dict[str, Any]:
     if observation["depth"].shape != segmentation.shape:
       raise ValueError(f"episode of seed {episode.get('seed')}: depth {observation['depth'].shape}, "
                        f"segmentation {segmentation.shape}")
+  if "state" in episode:
+    observation["state"] = np.asarray(episode["state"], np.float32)
+    if observation["state"].shape != (num_steps, state_lib.DIM):
+      raise ValueError(f"episode of seed {episode.get('seed')}: state {observation['state'].shape}, "
+                       f"want [{num_steps}, {state_lib.DIM}]")
   index = np.arange(num_steps)
   is_last = index == num_steps - 1
   return {
@@ -207,7 +220,8 @@ class DatasetWriter:
     self.state = state
     self.resolution = int(state["config"]["resolution"])
     self.depth = bool(state["config"].get("depth", False))
-    self.features = features(self.resolution, self.depth)
+    self.has_state = bool(state["config"].get("state", False))
+    self.features = features(self.resolution, self.depth, self.has_state)
     self._serializer = example_serializer.ExampleSerializer(self.features.get_serialized_info())
     os.makedirs(path, exist_ok=True)
     self._remove_stale_files()
@@ -258,6 +272,9 @@ class DatasetWriter:
       if ("depth" in e) != self.depth:
         raise ValueError(f"episode of seed {e['seed']} {'has' if 'depth' in e else 'lacks'} depth, the dataset "
                          f"{'stores' if self.depth else 'does not store'} it")
+      if ("state" in e) != self.has_state:
+        raise ValueError(f"episode of seed {e['seed']} {'has' if 'state' in e else 'lacks'} a state, the dataset "
+                         f"{'stores' if self.has_state else 'does not store'} it")
     index = len(self.shards(split))
     name = shard_filename(self.task, split, index)
     final = os.path.join(self.path, name)
@@ -367,6 +384,7 @@ def write_dataset(path: str, splits: Mapping[str, Sequence[Mapping[str, Any]]],
   summary.setdefault("level", first["level"])
   summary.setdefault("resolution", int(first["image"].shape[1]))
   summary.setdefault("depth", "depth" in first)
+  summary.setdefault("state", "state" in first)
   writer = DatasetWriter(path, summary, {k: len(v) for k, v in splits.items()})
   for split, episodes in splits.items():
     size = writer.state["splits"][split]["episodes_per_shard"]

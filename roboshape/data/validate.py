@@ -18,6 +18,7 @@ import numpy as np
 
 from roboshape import data as data_lib
 from roboshape.cli import UserError
+from roboshape.envs import state as state_lib
 
 _ACTION_TOL = 1e-6
 _MAX_SHOWN = 20
@@ -65,6 +66,13 @@ def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any
                       f"want uint16 [{num_steps},{res},{res}]")
     elif not depth.any():
       problems.append(f"{where}: depth is zero everywhere")
+  if config.get("state", False):
+    state = ep.get("state")
+    if state is None or state.dtype != np.float32 or state.shape != (num_steps, state_lib.DIM):
+      problems.append(f"{where}: state {getattr(state, 'dtype', None)} {getattr(state, 'shape', None)}, "
+                      f"want float32 [{num_steps},{state_lib.DIM}]")
+    elif not np.all(np.isfinite(state)):
+      problems.append(f"{where}: state has non-finite values")
   if action.dtype != np.float32 or action.shape != (num_steps, 7):
     problems.append(f"{where}: action {action.dtype} {action.shape}, want float32 [{num_steps},7]")
     return problems
@@ -113,7 +121,8 @@ def validate(path: str) -> Dict[str, Any]:
     problems.append(f"TFDS cannot read the metadata: {str(e).strip().splitlines()[0]}")
     splits_info = {}
   seen: Dict[int, str] = {}
-  shard_reader = reader.ShardReader(int(config["resolution"]), bool(config.get("depth", False)))
+  shard_reader = reader.ShardReader(int(config["resolution"]), bool(config.get("depth", False)),
+                                    bool(config.get("state", False)))
   for split, info in state["splits"].items():
     shards = info["shards"]
     recorded = [len(s["seeds"]) for s in shards]

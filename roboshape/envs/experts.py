@@ -2,9 +2,10 @@
 
 Each expert reads `env.unwrapped.privileged_state()` (torch tensors [N, ...]) and returns pd_ee_delta_pose
 actions float32 [N, 7] in [-1, 1]: a position step (x 0.1 m), a rotation step (x 0.1 rad, XYZ Euler) and the
-gripper (1 open, -1 closed). A per-env phase machine walks the waypoints (approach, descend, grasp, lift, carry,
-release, retreat) and falls back to the approach when a grasp or a push is lost, so the same code serves one CPU env
-or thousands of GPU envs. No motion planner is used.
+gripper (1 open, -1 closed). Each expert reads its phase (approach, descend, grasp, lift, carry, release, retreat)
+off the current state at every step and keeps no memory between steps, so its action is a function of what the
+state shows (a policy can infer it) and it falls back to the approach when a grasp or a push is lost. The same code
+serves one CPU env or thousands of GPU envs. No motion planner is used.
 """
 from typing import Dict
 
@@ -73,97 +74,90 @@ def clearance(obstacles: torch.Tensor, center: torch.Tensor, yaw: torch.Tensor, 
 
 
 class Expert:
-  """Base class: per-env phases and step counters; subclasses implement `_act`."""
+  """Base class of the memoryless experts: `act(state)` is a function of the current privileged state alone.
+
+  No phase machine, counter or latched choice survives from one step to the next, so the same state always gets
+  the same action whatever came before it: a policy that observes the state (or enough of its history) can infer
+  every action it is trained to imitate. `phase` holds the phase of each env at the last call, for inspection
+  only; nothing reads it back.
+  """
 
   def __init__(self, num_envs: int, device="cpu"):
     self.phase = torch.zeros(num_envs, dtype=torch.long, device=device)
-    self.count = torch.zeros(num_envs, dtype=torch.long, device=device)
 
   def reset(self, mask: torch.Tensor = None) -> None:
-    """Restarts the phase machine of the envs in `mask` bool [N] (all when None)."""
-    if mask is None:
-      mask = torch.ones_like(self.phase, dtype=torch.bool)
-    self.phase[mask] = 0
-    self.count[mask] = 0
+    """Kept for callers that reset an expert with its env: there is no memory to clear."""
+    del mask
 
   def act(self, state: Dict[str, torch.Tensor]) -> torch.Tensor:
     """Actions float32 [N, 7] for the privileged state (see RoboShapeEnv.privileged_state)."""
     state = {k: v.to(self.phase.device) for k, v in state.items()}
-    action = self._act(state)
-    self.count += 1
+    action, self.phase = self._act(state)
     return action
 
-  def _goto(self, mask, phase):
-    """Moves the envs in `mask` to `phase`, restarting their step counters."""
-    changed = mask & (self.phase != phase)
-    self.phase[changed] = phase
-    self.count[changed] = 0
-
   def _act(self, s):
+    """(actions [N, 7], phase [N]) for the state `s`."""
     raise NotImplementedError
 
 
+def _pick_yaw(s, center, base_yaw, zones, choosing):
+  """The gripper yaw [N] to use: base_yaw or base_yaw + pi/2 (both mod pi).
+
+  Where `choosing`, the one whose gripper zones at `center` have more clearance (by 5 mm); elsewhere the one nearer
+  the gripper's current yaw, so a choice made while approaching is kept without being remembered. Returns
+  (yaw unwrapped next to the current yaw [N], current yaw [N]).
+  """
+  grip_yaw = _yaw(rc.quaternion_to_matrix(s["tcp_q"]))
+  turn_by_room = clearance(s["obstacles"], center, base_yaw + np.pi / 2, zones) > \
+      clearance(s["obstacles"], center, base_yaw, zones) + 0.005
+  turn_by_pose = torch.abs(_wrap(base_yaw + np.pi / 2 - grip_yaw, np.pi)) < torch.abs(_wrap(base_yaw - grip_yaw, np.pi))
+  turn = torch.where(choosing, turn_by_room, turn_by_pose)
+  want = base_yaw + turn.float() * (np.pi / 2)
+  return grip_yaw + _wrap(want - grip_yaw, np.pi), grip_yaw
+
+
 class GraspExpert(Expert):
-  """Shared approach / descend / grasp / lift for pick and place; subclasses carry the cube."""
+  """Shared approach / descend / grasp for pick and place; subclasses carry the cube.
+
+  The phase is read off the state: the cube held (closed fingers in contact) means CARRY; the tcp at the grasp
+  point, or the fingers closing around the cube, CLOSE; the tcp above the cube at the grasp yaw, DESCEND; anything
+  else APPROACH (move above the cube, open).
+  """
   APPROACH, DESCEND, CLOSE, CARRY = 0, 1, 2, 3
-
-  def __init__(self, num_envs: int, device="cpu"):
-    super().__init__(num_envs, device)
-    self.turn = torch.zeros(num_envs, dtype=torch.bool, device=device)
-
-  def _grasp_yaw(self, s):
-    """The gripper yaw [N] to grasp the cube with (the cube face pair whose side has more room), and the current."""
-    grip_yaw = _yaw(rc.quaternion_to_matrix(s["tcp_q"]))
-    cube_yaw = _yaw(rc.quaternion_to_matrix(s["cube_q"]))
-    choosing = self.phase == self.APPROACH
-    if choosing.any():
-      center = s["cube_p"][:, :2]
-      turn = (clearance(s["obstacles"], center, cube_yaw + np.pi / 2, OPEN_ZONES)
-              > clearance(s["obstacles"], center, cube_yaw, OPEN_ZONES) + 0.005)
-      self.turn = torch.where(choosing, turn, self.turn)
-    want = cube_yaw + self.turn.float() * (np.pi / 2)
-    return grip_yaw + _wrap(want - grip_yaw, np.pi), grip_yaw
+  OPENED = 0.07   # finger opening (m) above which the gripper counts as open (fully open is about 0.08)
 
   def _grasp_phases(self, s):
-    """Targets for phases APPROACH..CLOSE; returns (target_p, yaw, gripper) and updates phases."""
+    """(target_p [N, 3], yaw [N], gripper [N], phase [N]) of the grasp; phase CARRY where the cube is held."""
     tcp, cube = s["tcp_p"], s["cube_p"]
-    yaw, grip_yaw = self._grasp_yaw(s)
-    yaw_err = torch.abs(_wrap(yaw - grip_yaw, 2 * np.pi))
+    cube_yaw = _yaw(rc.quaternion_to_matrix(s["cube_q"]))
     above = cube + torch.tensor([0.0, 0.0, 0.08]).to(cube)
     grasp_at = cube.clone()
     grasp_at[:, 2] = torch.clamp(cube[:, 2] - 0.004, min=0.014)
     xy_err = torch.linalg.norm(tcp[:, :2] - cube[:, :2], dim=1)
+    near = xy_err < 0.012
+    yaw, grip_yaw = _pick_yaw(s, cube[:, :2], cube_yaw, OPEN_ZONES, choosing=~near)
+    yaw_err = torch.abs(_wrap(yaw - grip_yaw, 2 * np.pi))
 
-    p = self.phase
-    self._goto((p == self.APPROACH) & (xy_err < 0.008) & (torch.abs(tcp[:, 2] - above[:, 2]) < 0.03)
-               & (yaw_err < 0.08), self.DESCEND)
-    p = self.phase
-    self._goto((p == self.DESCEND) & (xy_err > 0.02), self.APPROACH)
-    self._goto((p == self.DESCEND) & (torch.linalg.norm(tcp - grasp_at, dim=1) < 0.008), self.CLOSE)
-    p = self.phase
-    self._goto((p == self.CLOSE) & (self.count >= 5), self.CARRY)
-    # A lost grasp (fingers shut on nothing, or the cube back on the table) starts over.
-    p = self.phase
-    lost = (p >= self.CARRY) & (self.count >= 3) & ((s["gripper"] < 0.004) | (
-        ~s["grasped"] & (torch.linalg.norm(tcp - cube, dim=1) > 0.03)))
-    lost &= self._grasp_matters()
-    self._goto(lost, self.APPROACH)
+    held = s["grasped"] & (s["gripper"] > 0.004)
+    at_grasp = torch.linalg.norm(tcp - grasp_at, dim=1) < 0.01
+    closing = (s["gripper"] < self.OPENED) & (s["gripper"] > 0.004) & (torch.linalg.norm(tcp - cube, dim=1) < 0.02)
+    descend = near & (yaw_err < 0.1) & (tcp[:, 2] < above[:, 2] + 0.03)
+    phase = torch.full_like(xy_err, self.APPROACH, dtype=torch.long)
+    phase = torch.where(descend, self.DESCEND, phase)
+    phase = torch.where(at_grasp | closing, self.CLOSE, phase)
+    phase = torch.where(held, self.CARRY, phase)
 
-    p = self.phase
-    target = torch.where((p == self.APPROACH)[:, None], above, grasp_at)
-    gripper = torch.where(p >= self.CLOSE, CLOSED, OPEN)
-    return target, yaw, gripper
-
-  def _grasp_matters(self):
-    return torch.ones_like(self.phase, dtype=torch.bool)
+    target = torch.where((phase == self.APPROACH)[:, None], above, grasp_at)
+    gripper = torch.where(phase >= self.CLOSE, CLOSED, OPEN)
+    return target, yaw, gripper, phase
 
 
 class PickExpert(GraspExpert):
   """Grasps the cube and brings it to the task's fixed goal, then holds it there."""
 
   def _act(self, s):
-    target, yaw, gripper = self._grasp_phases(s)
-    carry = self.phase == self.CARRY
+    target, yaw, gripper, phase = self._grasp_phases(s)
+    carry = phase == self.CARRY
     # Aim the cube (not the tcp) at the goal; first lift straight up.
     offset = s["tcp_p"] - s["cube_p"]
     carry_target = s["goal_p"] + offset
@@ -173,55 +167,61 @@ class PickExpert(GraspExpert):
     carry_target = torch.where(low[:, None], lift, carry_target)
     target = torch.where(carry[:, None], carry_target, target)
     max_step = torch.where(carry, 0.4, 0.6)
-    return _servo_rows(s, target, yaw, gripper, max_step)
+    return _servo_rows(s, target, yaw, gripper, max_step), phase
 
 
 class PlaceExpert(GraspExpert):
-  """Grasps the cube, carries it high over the bin, lowers it below the rim, opens, then retreats up."""
+  """Grasps the cube, carries it high over the bin, lowers it below the rim, opens, then retreats up.
+
+  Held and away from the bin: CARRY (straight up) below the carry height, OVER (toward the bin) above it; held over
+  the bin: LOWER, and open (RELEASE) at the release height; released inside the bin: hold still until the fingers
+  are open (RELEASE), then RETREAT up. A cube neither held nor in the bin is grasped again.
+  """
   OVER, LOWER, RELEASE, RETREAT = 4, 5, 6, 7
   CARRY_HEIGHT = 0.16
   RELEASE_HEIGHT = 0.065   # cube center above the table at release (bin rim at 0.05)
-
-  def _grasp_matters(self):
-    return self.phase <= self.LOWER
+  INNER_HALF = 0.045       # the bin's inner half side (tasks.PlaceEnv.INNER_HALF)
 
   def _act(self, s):
-    target, yaw, gripper = self._grasp_phases(s)
+    target, yaw, gripper, phase = self._grasp_phases(s)
     tcp, cube, goal = s["tcp_p"], s["cube_p"], s["goal_p"]
     offset = tcp - cube
+    xy_err = torch.linalg.norm(cube[:, :2] - goal[:, :2], dim=1)
+    held = phase == self.CARRY
+    in_bin = ~held & torch.all(torch.abs(cube[:, :2] - goal[:, :2]) < self.INNER_HALF, dim=1) & (cube[:, 2] < 0.09)
+    over = xy_err < 0.015
+    at_release = torch.abs(cube[:, 2] - self.RELEASE_HEIGHT) < 0.01
+    high = cube[:, 2] > self.CARRY_HEIGHT - 0.04
+    phase = torch.where(held & ~over & high, self.OVER, phase)
+    phase = torch.where(held & over, self.LOWER, phase)
+    phase = torch.where(held & over & at_release, self.RELEASE, phase)
+    phase = torch.where(in_bin, torch.where(s["gripper"] < self.OPENED, self.RELEASE, self.RETREAT), phase)
+
     high_over = goal.clone()
     high_over[:, 2] = self.CARRY_HEIGHT
-    lift = tcp.clone()
-    lift[:, 2] = self.CARRY_HEIGHT + offset[:, 2]
-    xy_err = torch.linalg.norm(cube[:, :2] - goal[:, :2], dim=1)
-    p = self.phase
-    self._goto((p == self.CARRY) & (cube[:, 2] > self.CARRY_HEIGHT - 0.04), self.OVER)
-    self._goto((p == self.OVER) & (xy_err < 0.012), self.LOWER)
     low_over = goal.clone()
     low_over[:, 2] = self.RELEASE_HEIGHT
-    self._goto((p == self.LOWER) & (torch.abs(cube[:, 2] - self.RELEASE_HEIGHT) < 0.01) & (xy_err < 0.015),
-               self.RELEASE)
-    self._goto((self.phase == self.RELEASE) & (self.count >= 4), self.RETREAT)
-    p = self.phase
+    lift = tcp.clone()
+    lift[:, 2] = self.CARRY_HEIGHT + offset[:, 2]
     retreat = tcp.clone()
     retreat[:, 2] = 0.2
-    for phase, where in ((self.CARRY, lift), (self.OVER, high_over + offset), (self.LOWER, low_over + offset),
-                         (self.RELEASE, tcp), (self.RETREAT, retreat)):
-      target = torch.where((p == phase)[:, None], where, target)
-    gripper = torch.where(p >= self.RELEASE, OPEN, gripper)
-    max_step = torch.where(p == self.LOWER, 0.25, torch.where(p >= self.CARRY, 0.4, 0.6))
-    return _servo_rows(s, target, yaw, gripper, max_step)
+    for p, where in ((self.CARRY, lift), (self.OVER, high_over + offset), (self.LOWER, low_over + offset),
+                     (self.RELEASE, tcp), (self.RETREAT, retreat)):
+      target = torch.where((phase == p)[:, None], where, target)
+    gripper = torch.where(phase >= self.RELEASE, OPEN, gripper)
+    max_step = torch.where(phase == self.LOWER, 0.25, torch.where(phase >= self.CARRY, 0.4, 0.6))
+    return _servo_rows(s, target, yaw, gripper, max_step), phase
 
 
 class PushExpert(Expert):
-  """Closes the gripper, goes behind the cube (seen from the target), descends and pushes it onto the target."""
+  """Closes the gripper, goes behind the cube (seen from the target), descends and pushes it onto the target.
+
+  The phase is read off the state: the tcp low and on the line behind the cube means PUSH; the tcp within 1.5 cm
+  (in the table plane) of the point behind the cube, DESCEND; anything else ABOVE (move over that point).
+  """
   ABOVE, DESCEND, PUSH = 0, 1, 2
   PUSH_HEIGHT = 0.018
   BEHIND = CUBE_HALF + 0.03
-
-  def __init__(self, num_envs: int, device="cpu"):
-    super().__init__(num_envs, device)
-    self.turn = torch.zeros(num_envs, dtype=torch.bool, device=device)
 
   def _act(self, s):
     tcp, cube, goal = s["tcp_p"], s["cube_p"], s["goal_p"]
@@ -237,27 +237,20 @@ class PushExpert(Expert):
     pre_high = torch.cat([pre, (z + 0.07)[:, None]], 1)
     push = torch.cat([cube[:, :2] - d * (CUBE_HALF + 0.012) + d * torch.clamp(dist, max=0.03), z[:, None]], 1)
 
-    p = self.phase
-    self._goto((p == self.ABOVE) & (torch.linalg.norm(tcp[:, :2] - pre, dim=1) < 0.01), self.DESCEND)
-    p = self.phase
-    self._goto((p == self.DESCEND) & (torch.linalg.norm(tcp[:, :2] - pre, dim=1) > 0.02), self.ABOVE)
-    self._goto((p == self.DESCEND) & (torch.abs(tcp[:, 2] - self.PUSH_HEIGHT) < 0.01), self.PUSH)
-    p = self.phase
-    off_line = (torch.abs(lateral) > 0.012) | (along > -CUBE_HALF + 0.002)
-    self._goto((p == self.PUSH) & off_line & (self.count > 1), self.ABOVE)
+    on_line = (torch.abs(lateral) <= 0.012) & (along <= -CUBE_HALF + 0.002) & (along >= -self.BEHIND - 0.015)
+    low = tcp[:, 2] < self.PUSH_HEIGHT + 0.01
+    near_pre = torch.linalg.norm(tcp[:, :2] - pre, dim=1) < 0.015
+    phase = torch.full_like(along, self.ABOVE, dtype=torch.long)
+    phase = torch.where(near_pre, self.DESCEND, phase)
+    phase = torch.where(on_line & low, self.PUSH, phase)
 
-    p = self.phase
-    target = torch.where((p == self.ABOVE)[:, None], pre_high, torch.where((p == self.DESCEND)[:, None], pre_low, push))
+    target = torch.where((phase == self.ABOVE)[:, None], pre_high,
+                         torch.where((phase == self.DESCEND)[:, None], pre_low, push))
     # Fingers closing across the push (a wide pusher), unless the hand then hits a tall distractor beside the path.
     across = torch.atan2(d[:, 1], d[:, 0])
-    if (p == self.ABOVE).any():
-      turn = clearance(s["obstacles"], pre, across + np.pi / 2, CLOSED_ZONES) > \
-          clearance(s["obstacles"], pre, across, CLOSED_ZONES) + 0.005
-      self.turn = torch.where(p == self.ABOVE, turn, self.turn)
-    grip_yaw = _yaw(rc.quaternion_to_matrix(s["tcp_q"]))
-    yaw = grip_yaw + _wrap(across + self.turn.float() * (np.pi / 2) - grip_yaw, np.pi)
-    max_step = torch.where(p == self.PUSH, 0.25, 0.6)
-    return _servo_rows(s, target, yaw, torch.full_like(yaw, CLOSED), max_step)
+    yaw, _ = _pick_yaw(s, pre, across, CLOSED_ZONES, choosing=phase == self.ABOVE)
+    max_step = torch.where(phase == self.PUSH, 0.25, 0.6)
+    return _servo_rows(s, target, yaw, torch.full_like(yaw, CLOSED), max_step), phase
 
 
 def _servo_rows(s, target, yaw, gripper, max_step) -> torch.Tensor:

@@ -22,6 +22,7 @@ from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
 from roboshape.envs import palettes
+from roboshape.envs import state as state_lib
 
 # Object ids of the segmentation maps (contract A).
 SEG_BACKDROP, SEG_TABLE, SEG_ROBOT, SEG_CUBE, SEG_GOAL, SEG_FIRST_DISTRACTOR = 0, 1, 2, 3, 4, 5
@@ -293,6 +294,25 @@ class RoboShapeEnv(BaseEnv):
     return dict(tcp_p=tcp.p, tcp_q=tcp.q, cube_p=cube.p, cube_q=cube.q, goal_p=self.goal_pos.to(tcp.p.device),
                 gripper=self.agent.robot.get_qpos()[:, -2:].sum(-1), grasped=self.agent.is_grasping(self.cube),
                 obstacles=obstacles.to(tcp.p.device))
+
+  def state_vector(self) -> np.ndarray:
+    """The privileged state float32 [N, envs.state.DIM] (layout in roboshape/envs/state.py): what the experts read,
+    plus the arm's joints and each distractor's position and size."""
+    s = self.privileged_state()
+    distractors = []
+    for draw, actors in zip(self.draws, self.distractors):
+      distractors.append([list(actor.pose.p[0].cpu().numpy()) + [size] for actor, size in zip(actors, draw.sizes)])
+    k = max(1, max(len(d) for d in distractors))
+    rows = np.zeros((self.num_envs, k, 4), np.float32)
+    for i, d in enumerate(distractors):
+      if d:
+        rows[i, :len(d)] = d
+    present = np.zeros((self.num_envs, k), bool)
+    for i, d in enumerate(distractors):
+      present[i, :len(d)] = True
+    return state_lib.pack(s["tcp_p"].cpu().numpy(), s["tcp_q"].cpu().numpy(), s["gripper"].cpu().numpy(),
+                          self.agent.robot.get_qpos()[:, :7].cpu().numpy(), s["cube_p"].cpu().numpy(),
+                          s["cube_q"].cpu().numpy(), s["goal_p"].cpu().numpy(), rows, present)
 
   def frames(self, obs) -> Tuple[np.ndarray, np.ndarray]:
     """The front camera's rgb uint8 [N, H, W, 3] and RoboShape segmentation uint8 [N, H, W] from an observation."""

@@ -78,10 +78,12 @@ def run_rollouts(pool, policy, rollouts: Sequence[Rollout], on_done: OnDone, rec
   """Rolls `policy` out in `pool` for every rollout; calls `on_done` as each one ends.
 
   Args:
-    pool: has `num_envs`, `reset(seeds) -> uint8 [N,H,W,3]`, `step(actions [N,7]) -> dict(image, success, done,
-      elapsed)` and `restart()` (the sim bridge's pool, or a fake in tests).
-    policy: has `reset(batch_size)`, `reset_slots(indices)` and `act_batch(frames [B,H,W,3]) -> [B,7]`; it always
-      sees a full batch of `pool.num_envs` frames (a short last wave is padded with black frames).
+    pool: has `num_envs`, `reset(seeds)` and `step(actions [N,7])`, both -> dict(image uint8 [N,H,W,3], the other
+      observation keys the policy reads, success, done, elapsed), and `restart()` (the sim bridge's pool, or a fake
+      in tests).
+    policy: has `reset(batch_size)`, `reset_slots(indices)`, `act_batch(obs) -> [B,7]` (obs: a dict of the keys
+      in `policy.inputs`, default ("image",)); it always sees a full batch of `pool.num_envs` observations (a
+      short last wave is padded with zeros).
     rollouts: what to run.
     on_done: called once per rollout with its result and, for rollouts in `record`, its frames.
     record: rollouts whose frames to keep for videos.
@@ -138,24 +140,29 @@ def run_rollouts(pool, policy, rollouts: Sequence[Rollout], on_done: OnDone, rec
 def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: set, finish) -> None:
   """Resets the wave's envs, steps them until all are done, reports each rollout as it ends."""
   k = len(wave)
-  obs = np.asarray(pool.reset([r.seed for r in wave]))
+  inputs = tuple(getattr(policy, "inputs", ("image",)))
+  out = pool.reset([r.seed for r in wave])
   policy.reset_slots(list(range(n)))
-  frames = {i: [obs[i]] for i, r in enumerate(wave) if r in record}
+  frames = {i: [out["image"][i]] for i, r in enumerate(wave) if r in record}
   active = np.ones(k, bool)
   while active.any():
-    batch = obs if k == n else np.concatenate([obs, np.zeros((n - k,) + obs.shape[1:], obs.dtype)])
+    batch = {key: _pad(np.asarray(out[key]), n) for key in inputs}
     actions = np.clip(np.asarray(policy.act_batch(batch), np.float32)[:k], -1.0, 1.0)
     out = pool.step(actions)
-    obs = np.asarray(out["image"])
     for i in np.flatnonzero(active):
       if i in frames:
-        frames[i].append(obs[i])
+        frames[i].append(out["image"][i])
       if bool(out["done"][i]):
         active[i] = False
         success = bool(out["success"][i])
         finished.add(wave[i])
         finish(wave[i], dict(success=success, length=int(out["elapsed"][i]), ended="success" if success else "horizon"),
                np.stack(frames[i]) if i in frames else None)
+
+
+def _pad(x: np.ndarray, n: int) -> np.ndarray:
+  """x [k, ...] padded with zeros to [n, ...] (a short last wave)."""
+  return x if len(x) == n else np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:], x.dtype)])
 
 
 def policy_fingerprint(workdir: str) -> str:

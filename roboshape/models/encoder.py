@@ -5,12 +5,17 @@ An encoder is a pure step function over frames plus its params:
   state = enc.init_state(batch_size)
   tokens, state = enc.step(params, state, frames)        # frames uint8 [B, H, W, 3] -> tokens float32 [B, N, D]
 
+An encoder reads the observation keys named by its `inputs` (roboshape.encoders.OBSERVATION_KEYS: image,
+segmentation, depth, state). Its step takes the image array itself when `inputs == ("image",)` (SAVi, R3M, DINO),
+and otherwise a dict of the arrays it names; `select` makes either from an observation dict, so the cache and the
+controller feed every encoder alike.
+
 N is the number of tokens per frame (K slots for SAVi, 1 for a global encoder, 1 + patches for DINO with patch
 tokens) and D their width. `encode_episode` runs the step over a whole episode with `jax.lax.scan`, so the features
 a policy is trained on (cached once per dataset) are exactly those closed-loop control sees frame by frame.
 """
 import dataclasses
-from typing import Any, Callable, Tuple
+from typing import Any, Callable, Mapping, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -24,9 +29,10 @@ class FrozenEncoder:
   """A frozen image or video encoder.
 
   Attributes:
-    name: "savi", "r3m" or "dino".
+    name: the registered name (roboshape.encoders).
     params: the encoder's parameters (a pytree of arrays).
-    step: pure `(params, state, frames uint8 [B,H,W,3]) -> (tokens [B,N,D], state)`.
+    step: pure `(params, state, obs) -> (tokens [B,N,D], state)`; obs as `select` gives it (frames uint8
+      [B,H,W,3] for an image encoder).
     init_state: `batch_size -> state` (an empty tuple for encoders without memory).
     num_tokens: N.
     token_dim: D.
@@ -40,14 +46,30 @@ class FrozenEncoder:
   num_tokens: int
   token_dim: int
   identity: str
+  inputs: Tuple[str, ...] = ("image",)
 
-  def encode_episode(self, frames: jax.Array) -> jax.Array:
-    """uint8 [T, H, W, 3] -> tokens [T, N, D], recurrent over the whole episode."""
-    return self.encode_batch(frames[None])[0]
+  def encode_episode(self, episode) -> jax.Array:
+    """frames uint8 [T, H, W, 3] (or a dict of [T, ...] observations) -> tokens [T, N, D], recurrent over the
+    whole episode."""
+    return self.encode_batch(jax.tree.map(lambda x: x[None], select(self.inputs, episode)))[0]
 
-  def encode_batch(self, videos: jax.Array) -> jax.Array:
-    """uint8 [B, T, H, W, 3] -> tokens [B, T, N, D]; episodes of one batch must share their length T."""
-    return _encode_batch(self.step, self.params, self.init_state(videos.shape[0]), videos)
+  def encode_batch(self, videos) -> jax.Array:
+    """frames uint8 [B, T, H, W, 3] (or a dict of [B, T, ...] observations) -> tokens [B, T, N, D]; episodes of one
+    batch must share their length T."""
+    videos = select(self.inputs, videos)
+    batch = jax.tree.leaves(videos)[0].shape[0]
+    return _encode_batch(self.step, self.params, self.init_state(batch), videos)
+
+
+def select(inputs: Sequence[str], obs):
+  """What an encoder's step takes from `obs` (a dict of arrays, or an image array): the image array for an encoder
+  of inputs ("image",), otherwise the dict of its inputs. KeyError names a missing key."""
+  if not isinstance(obs, Mapping):
+    obs = {"image": obs}
+  missing = [k for k in inputs if k not in obs]
+  if missing:
+    raise KeyError(f"the observation lacks {', '.join(missing)} (it has {', '.join(obs)})")
+  return obs["image"] if tuple(inputs) == ("image",) else {k: obs[k] for k in inputs}
 
 
 @jax.jit(static_argnums=0)
@@ -55,5 +77,5 @@ def _encode_batch(step: StepFn, params, state, videos):
   def body(carry, frames):
     tokens, carry = step(params, carry, frames)
     return carry, tokens
-  _, tokens = jax.lax.scan(body, state, jnp.swapaxes(videos, 0, 1))
+  _, tokens = jax.lax.scan(body, state, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), videos))
   return jnp.swapaxes(tokens, 0, 1)

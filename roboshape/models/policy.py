@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from roboshape.models import encoder as encoder_lib
 from roboshape.models import heads
 
 
@@ -261,14 +262,21 @@ class Policy:
     rng = self.carry.rng
     self.carry = jax.tree.map(pick, fresh, self.carry)._replace(rng=rng)
 
+  @property
+  def inputs(self):
+    """The observation keys the encoder reads (roboshape.encoders.OBSERVATION_KEYS)."""
+    return self.encoder.inputs
+
   def act_batch(self, frames) -> np.ndarray:
-    """uint8 [B, H, W, 3] -> float32 [B, A]; B must equal the batch size of the last reset."""
-    frames = jnp.asarray(frames)
-    if frames.shape[0] != self.batch_size:
-      raise ValueError(f"got {frames.shape[0]} frames for a policy reset with batch_size={self.batch_size}")
+    """uint8 [B, H, W, 3] (or a dict of [B, ...] observations holding the encoder's inputs) -> float32 [B, A];
+    B must equal the batch size of the last reset."""
+    frames = jax.tree.map(jnp.asarray, encoder_lib.select(self.encoder.inputs, frames))
+    batch = jax.tree.leaves(frames)[0].shape[0]
+    if batch != self.batch_size:
+      raise ValueError(f"got {batch} frames for a policy reset with batch_size={self.batch_size}")
     actions, self.carry = self._step(self.params, self.encoder.params, self.carry, frames)
     return np.asarray(actions)
 
   def act(self, frame) -> np.ndarray:
-    """uint8 [H, W, 3] -> float32 [A], for a policy reset with batch_size=1."""
-    return self.act_batch(np.asarray(frame)[None])[0]
+    """uint8 [H, W, 3] (or a dict of observations) -> float32 [A], for a policy reset with batch_size=1."""
+    return self.act_batch(jax.tree.map(lambda x: np.asarray(x)[None], frame))[0]

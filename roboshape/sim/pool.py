@@ -8,8 +8,8 @@ killed after a timeout. Both never hang the parent.
   with SimPool(EnvSpec("pick"), num_workers=2) as pool:
     for episode in pool.collect(range(10)):     # oracle demos, in completion order
       ...
-    frames = pool.reset([0, 1])                 # closed loop: uint8 [2, H, W, 3]
-    out = pool.step(actions)                    # float32 [2, 7] -> image, segmentation, success, done, elapsed
+    obs = pool.reset([0, 1])                    # closed loop: image uint8 [2, H, W, 3], segmentation, state, ...
+    obs = pool.step(actions)                    # float32 [2, 7] -> the same keys after the step
 """
 import collections
 import dataclasses
@@ -89,6 +89,16 @@ class _Proc:
       except subprocess.TimeoutExpired:
         pass
     self.conn.close()
+
+
+def _stack(frames: List[dict]) -> Dict[str, np.ndarray]:
+  """The workers' frame dicts stacked into arrays [N, ...]."""
+  return dict(image=np.stack([o["image"] for o in frames]),
+              segmentation=np.stack([o["segmentation"] for o in frames]),
+              state=np.stack([o["state"] for o in frames]).astype(np.float32),
+              success=np.array([o["success"] for o in frames], bool),
+              done=np.array([o["done"] for o in frames], bool),
+              elapsed=np.array([o["elapsed"] for o in frames], np.int32))
 
 
 class SimPool:
@@ -250,21 +260,22 @@ class SimPool:
               pass
 
   # ------------------------------------------------------------------------------------------- closed loop
-  def reset(self, seeds: Sequence[int]) -> np.ndarray:
-    """Resets env i from seeds[i] (len(seeds) <= num_envs); returns their first frames uint8 [N, H, W, 3]."""
+  def reset(self, seeds: Sequence[int]) -> Dict[str, np.ndarray]:
+    """Resets env i from seeds[i] (len(seeds) <= num_envs); returns their first observations, as `step` does."""
     seeds = check_seeds(seeds)
     if not 0 < len(seeds) <= self.num_envs:
       raise UserError(f"pool.reset got {len(seeds)} seeds for a pool of {self.num_envs} envs; "
                       f"pass between 1 and {self.num_envs}")
     out = self._broadcast("reset", seeds)
     self._active = len(seeds)
-    return np.stack([o["image"] for o in out])
+    return _stack(out)
 
   def step(self, actions: np.ndarray) -> Dict[str, np.ndarray]:
     """Executes actions float32 [N, 7] (clipped to [-1, 1]) in the N envs of the last reset.
 
-    Returns image uint8 [N, H, W, 3], segmentation uint8 [N, H, W], success bool [N], done bool [N]
-    (success or horizon) and elapsed int32 [N]. A done env ignores its action and returns its last frame.
+    Returns image uint8 [N, H, W, 3], segmentation uint8 [N, H, W], state float32 [N, envs.state.DIM] (the
+    privileged state), success bool [N], done bool [N] (success or horizon) and elapsed int32 [N]. A done env
+    ignores its action and returns its last observation.
     """
     if self._active == 0:
       raise UserError("pool.step before pool.reset: reset the envs with seeds first")
@@ -273,12 +284,7 @@ class SimPool:
       raise UserError(f"pool.step needs actions of shape ({self._active}, 7), got {actions.shape}")
     if not np.all(np.isfinite(actions)):
       raise UserError("pool.step got non-finite actions (NaN or inf)")
-    out = self._broadcast("step", list(actions))
-    return dict(image=np.stack([o["image"] for o in out]),
-                segmentation=np.stack([o["segmentation"] for o in out]),
-                success=np.array([o["success"] for o in out], bool),
-                done=np.array([o["done"] for o in out], bool),
-                elapsed=np.array([o["elapsed"] for o in out], np.int32))
+    return _stack(self._broadcast("step", list(actions)))
 
   def _broadcast(self, command: str, args: list) -> List[dict]:
     procs = [self._proc(i) for i in range(len(args))]

@@ -5,9 +5,10 @@ never imports TensorFlow or JAX). Requests are (command, argument) tuples; repli
 ("error", one-line message). Payloads are numpy arrays and python scalars only.
 
 Commands:
-  collect seed    -> episode dict of contract A (the oracle expert run from `seed`; with depth uint16 [T+1, H, W]
-                     in millimetres when the spec asks for depth)
-  reset seed      -> frame dict (image, segmentation, success, done, elapsed)
+  collect seed    -> episode dict of contract A (the oracle expert run from `seed`, with the privileged state
+                     float32 [T+1, envs.state.DIM]; with depth uint16 [T+1, H, W] in millimetres when the spec asks
+                     for depth)
+  reset seed      -> frame dict (image, segmentation, state, success, done, elapsed)
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
   close           -> exits
 """
@@ -44,7 +45,7 @@ class Worker:
     self.horizon = spec["max_episode_steps"] or self.task.HORIZON
     self.expert = experts.make_expert(spec["task"], self.task.num_envs, self.task.device)
     self.env_version = f"{envs.ENV_VERSION}+mani_skill-{mani_skill.__version__}"
-    self._frame = self._depth = None
+    self._frame = self._depth = self._state = None
     self.elapsed, self.success, self.done = 0, False, True
     # Every reset rebuilds the scene, and ManiSkill then runs gc.collect(), which scans every object of this process:
     # about 160 ms of a 230 ms reset. Freezing what start-up built (modules, the env) leaves it out of those scans.
@@ -56,6 +57,7 @@ class Worker:
   def _observe(self, obs):
     rgb, seg = self.task.frames(obs)
     self._depth = self.task.depth(obs)[0] if self.spec.get("depth") else None
+    self._state = self.task.state_vector()[0]
     return rgb[0], seg[0]
 
   def _reset(self, seed: int):
@@ -72,8 +74,9 @@ class Worker:
     return self._observe(obs), float(reward[0])
 
   def _frame_dict(self, image, seg) -> dict:
-    self._frame = (image, seg)
-    return dict(image=image, segmentation=seg, success=self.success, done=self.done, elapsed=self.elapsed)
+    self._frame = (image, seg, self._state)
+    return dict(image=image, segmentation=seg, state=self._state, success=self.success, done=self.done,
+                elapsed=self.elapsed)
 
   def reset(self, seed: int) -> dict:
     return self._frame_dict(*self._reset(seed))
@@ -84,8 +87,8 @@ class Worker:
     if self.done:
       if self._frame is None:
         raise RuntimeError("step before reset: call pool.reset(seeds) first")
-      return dict(image=self._frame[0], segmentation=self._frame[1], success=self.success, done=True,
-                  elapsed=self.elapsed)
+      return dict(image=self._frame[0], segmentation=self._frame[1], state=self._frame[2], success=self.success,
+                  done=True, elapsed=self.elapsed)
     (image, seg), _ = self._step(action)
     return self._frame_dict(image, seg)
 
@@ -93,18 +96,20 @@ class Worker:
     """Runs the oracle expert from `seed` until success or the horizon; the whole episode of contract A."""
     np = self.np
     image, seg = self._reset(seed)
-    images, segs, depths, actions, rewards = [image], [seg], [self._depth], [], []
+    images, segs, depths, states, actions, rewards = [image], [seg], [self._depth], [self._state], [], []
     while not self.done:
       action = self.expert.act(self.task.privileged_state()).cpu().numpy().astype(np.float32)[0]
       (image, seg), reward = self._step(action)
       images.append(image)
       segs.append(seg)
       depths.append(self._depth)
+      states.append(self._state)
       actions.append(action)
       rewards.append(reward)
     episode = dict(task=self.spec["task"], level=self.spec["level"], seed=int(seed), success=self.success,
                    env_version=self.env_version, terminated=self.success,
                    image=np.stack(images).astype(np.uint8), segmentation=np.stack(segs).astype(np.uint8),
+                   state=np.stack(states).astype(np.float32),
                    action=np.stack(actions).astype(np.float32).reshape(-1, 7),
                    reward=np.asarray(rewards, np.float32))
     if self.spec.get("depth"):

@@ -63,16 +63,23 @@ def _bucket(length: int) -> int:
 
 
 def _encode_group(encoder, episodes: List[dict], dtype) -> List[np.ndarray]:
-  """Encodes episodes together: frames padded at the end (the encoder is causal) to one length, batch padded."""
+  """Encodes episodes together: observations padded at the end (the encoder is causal) to one length, batch
+  padded. Only the encoder's inputs are read (an episode without one of them is a UserError)."""
+  missing = [k for k in encoder.inputs if k not in episodes[0]]
+  if missing:
+    raise UserError(f"the {encoder.name} encoder needs observation/{', observation/'.join(missing)}, which this "
+                    "dataset does not store: collect it again with this version of roboshape (into a new "
+                    "--config.data.dir, or delete the old one).")
   length = _bucket(max(len(e["image"]) for e in episodes))
-  videos = []
+  videos = {k: [] for k in encoder.inputs}
   for e in episodes:
-    img = e["image"]
-    pad = np.repeat(img[-1:], length - len(img), axis=0)
-    videos.append(np.concatenate([img, pad], axis=0))
-  while len(videos) < BATCH_EPISODES:
-    videos.append(videos[-1])
-  tokens = np.asarray(encoder.encode_batch(np.stack(videos)))                 # [B, L, N, D]
+    for k in encoder.inputs:
+      x = np.asarray(e[k])
+      videos[k].append(np.concatenate([x, np.repeat(x[-1:], length - len(x), axis=0)], axis=0))
+  for k in encoder.inputs:
+    while len(videos[k]) < BATCH_EPISODES:
+      videos[k].append(videos[k][-1])
+  tokens = np.asarray(encoder.encode_batch({k: np.stack(v) for k, v in videos.items()}))   # [B, L, N, D]
   return [tokens[i, :len(e["image"])].astype(dtype) for i, e in enumerate(episodes)]
 
 
@@ -98,7 +105,8 @@ def _write_shard(path: str, episodes: List[dict], features: List[np.ndarray]) ->
 
 def encode_split(encoder, episodes: Iterable[dict], out_dir: str, dtype: str = "float32",
                  desc: str = "encode") -> int:
-  """Encodes `episodes` (dicts with image uint8 [S, H, W, 3] and action [S, A]) into shards under `out_dir`.
+  """Encodes `episodes` (dicts with image uint8 [S, H, W, 3], the encoder's other inputs [S, ...] and action
+  [S, A]) into shards under `out_dir`.
 
   Resumes: shards already in `out_dir` are kept and their episodes skipped. Returns the number of episodes.
   """

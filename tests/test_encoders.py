@@ -1,0 +1,77 @@
+"""The encoder registry and the `state` encoder: names, inputs, the privileged-state token and its layout."""
+import numpy as np
+import pytest
+
+from configs import common
+from roboshape import encoders
+from roboshape.cli import UserError
+from roboshape.encoders import state as state_encoder
+from roboshape.envs import state as state_lib
+
+
+def test_the_registry_lists_every_encoder_with_its_needs():
+  assert {"savi", "r3m", "dino", "state"} <= set(encoders.names())
+  assert encoders.get("savi").pretrain and not encoders.get("state").pretrain
+  assert encoders.get("state").inputs == ("state",) and encoders.get("r3m").inputs == ("image",)
+  with pytest.raises(UserError, match="unknown encoder 'nope'; registered encoders: .*savi"):
+    encoders.get("nope")
+  # A config of an encoder without pretraining has no pretrain stage.
+  assert "pretrain" not in common.get_config("push", "state", "tiny").stages
+
+
+def test_a_registered_toy_encoder_is_a_config_choice():
+  kind = encoders.register(encoders.Kind(name="toy_registered", inputs=("segmentation",), pretrain=False,
+                                         build=lambda config, workdir: None, title="Toy", description="test"))
+  try:
+    config = common.get_config("pick", "toy_registered", "tiny")
+    assert config.encoder == "toy_registered" and "pretrain" not in config.stages
+  finally:
+    encoders._REGISTRY.pop(kind.name)  # pylint: disable=protected-access
+  with pytest.raises(ValueError, match="inputs"):
+    encoders.Kind(name="bad", inputs=("pixels",), pretrain=False, build=None, title="", description="")
+
+
+def test_the_state_vector_packs_fields_in_their_documented_places():
+  n, k = 2, 3
+  rng = np.random.default_rng(0)
+  fields = dict(tcp_pos=rng.normal(size=(n, 3)), tcp_quat=rng.normal(size=(n, 4)), gripper=rng.normal(size=(n,)),
+                arm_qpos=rng.normal(size=(n, 7)), cube_pos=rng.normal(size=(n, 3)), cube_quat=rng.normal(size=(n, 4)),
+                goal_pos=rng.normal(size=(n, 3)))
+  rows = rng.normal(size=(n, k, 4))
+  present = np.array([[True, True, False], [True, False, False]])
+  vec = state_lib.pack(**fields, distractors=rows, present=present)
+  assert vec.shape == (n, state_lib.DIM) == (2, 65) and vec.dtype == np.float32
+  cuts = state_lib.slices()
+  for name, value in fields.items():
+    np.testing.assert_allclose(vec[:, cuts[name]], np.reshape(value, (n, -1)), rtol=1e-6)
+  dist = vec[:, cuts["distractors"]].reshape(n, state_lib.MAX_DISTRACTORS, 5)
+  np.testing.assert_allclose(dist[0, :2, :4], rows[0, :2], rtol=1e-6)
+  assert dist[..., 4].tolist() == [[1, 1, 0, 0, 0, 0, 0, 0], [1, 0, 0, 0, 0, 0, 0, 0]]
+  assert not dist[0, 2:].any() and not dist[1, 1:].any()      # padding rows are all zero
+  assert "[7:8] gripper" in state_lib.describe()
+
+
+def test_the_state_token_is_the_vector_in_decimetres():
+  enc = encoders.get("state").build(common.get_config("push", "state", "tiny"), "")
+  assert (enc.inputs, enc.num_tokens, enc.token_dim) == (("state",), 1, state_lib.DIM)
+  states = np.random.default_rng(1).normal(size=(2, 5, state_lib.DIM)).astype(np.float32)
+  tokens = np.asarray(enc.encode_batch({"state": states, "image": np.zeros((2, 5, 4, 4, 3), np.uint8)}))
+  assert tokens.shape == (2, 5, 1, state_lib.DIM)
+  cuts = state_lib.slices()
+  np.testing.assert_allclose(tokens[:, :, 0, cuts["cube_pos"]], 10 * states[..., cuts["cube_pos"]], rtol=1e-6)
+  np.testing.assert_allclose(tokens[:, :, 0, cuts["cube_quat"]], states[..., cuts["cube_quat"]], rtol=1e-6)
+  scale = state_encoder.token_scale()[cuts["distractors"]].reshape(-1, 5)
+  assert (scale[:, :4] == 10).all() and (scale[:, 4] == 1).all()
+  with pytest.raises(KeyError, match="lacks state"):
+    enc.encode_batch({"image": np.zeros((1, 2, 4, 4, 3), np.uint8)})
+
+
+def test_a_dataset_without_state_is_a_one_line_error_for_the_state_encoder(tmp_path):
+  from roboshape.train import cache  # pylint: disable=import-outside-toplevel
+  enc = encoders.get("state").build(None, "")
+  old = dict(image=np.zeros((3, 4, 4, 3), np.uint8), segmentation=np.zeros((3, 4, 4), np.uint8),
+             action=np.zeros((2, 7), np.float32), seed=0, success=True)
+  with pytest.raises(UserError, match="needs observation/state, which this dataset does not store: collect it again"
+                     ) as e:
+    cache.encode_split(enc, iter([old]), str(tmp_path / "features"))
+  assert "\n" not in str(e.value)
