@@ -15,7 +15,7 @@ from roboshape.cli import UserError
 
 STAGE_MODULES = {
     "collect": "roboshape.data.collect",
-    "pretrain": "roboshape.train.pretrain",
+    "pretrain": "",           # the encoder's own (roboshape.encoders.Kind.pretrain), e.g. roboshape.train.pretrain
     "cache": "roboshape.train.cache",
     "train_policy": "roboshape.train.bc",
     "evaluate": "roboshape.eval.closed_loop",
@@ -103,12 +103,15 @@ def run(config, workdir: str) -> None:
     raise UserError(f"unknown stage(s) {', '.join(unknown)}; stages are {', '.join(STAGE_MODULES)}.")
   save_config(config, workdir)
   for name in config.stages:
+    module_name = encoders.get(config.encoder).pretrain if name == "pretrain" else STAGE_MODULES[name]
+    if not module_name:
+      raise UserError(f"the {config.encoder} encoder has no pretrain stage; drop it from --config.stages.")
     try:
-      module = importlib.import_module(STAGE_MODULES[name])
+      module = importlib.import_module(module_name)
     except ModuleNotFoundError as e:
       if e.name and e.name.startswith("roboshape"):
         raise UserError(f"stage {name!r} is not implemented in this version of roboshape "
-                        f"({STAGE_MODULES[name]} is missing); drop it with --config.stages.") from None
+                        f"({module_name} is missing); drop it with --config.stages.") from None
       raise
     print(f"[roboshape] stage {name} -> {workdir}", flush=True)
     start = time.time()

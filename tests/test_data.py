@@ -397,6 +397,12 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   obs = sim_pool.reset([stored["seed"]])
   np.testing.assert_array_equal(np.asarray(enc.encode_episode({"state": stored["state"]}))[0],
                                 np.asarray(enc.encode_batch({"state": obs["state"][:, None]}))[0, 0])
+  np.testing.assert_array_equal(obs["depth"][0], stored["depth"][0])
+  objects = encoders.get("objects").build(common.get_config("push", "objects", "small"), "")
+  assert objects.inputs == ("image", "segmentation", "depth")
+  np.testing.assert_array_equal(
+      np.asarray(objects.encode_episode({k: stored[k] for k in objects.inputs}))[0],
+      np.asarray(objects.encode_batch({k: obs[k][:, None] for k in objects.inputs}))[0, 0])
   cuts = state_lib.slices()
   first = stored["state"][0]
   assert first[cuts["cube_pos"]][2] == pytest.approx(0.02, abs=2e-3)    # the cube rests on the table

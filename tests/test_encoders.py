@@ -20,7 +20,7 @@ def test_the_registry_lists_every_encoder_with_its_needs():
 
 
 def test_a_registered_toy_encoder_is_a_config_choice():
-  kind = encoders.register(encoders.Kind(name="toy_registered", inputs=("segmentation",), pretrain=False,
+  kind = encoders.register(encoders.Kind(name="toy_registered", inputs=("segmentation",), pretrain="",
                                          build=lambda config, workdir: None, title="Toy", description="test"))
   try:
     config = common.get_config("pick", "toy_registered", "tiny")
@@ -28,7 +28,7 @@ def test_a_registered_toy_encoder_is_a_config_choice():
   finally:
     encoders._REGISTRY.pop(kind.name)  # pylint: disable=protected-access
   with pytest.raises(ValueError, match="inputs"):
-    encoders.Kind(name="bad", inputs=("pixels",), pretrain=False, build=None, title="", description="")
+    encoders.Kind(name="bad", inputs=("pixels",), pretrain="", build=None, title="", description="")
 
 
 def test_the_state_vector_packs_fields_in_their_documented_places():

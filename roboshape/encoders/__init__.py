@@ -26,15 +26,15 @@ class Kind:
   Attributes:
     name: the config's `encoder` value and the column name in tables.
     inputs: observation keys the encoder's step reads, e.g. ("image",) or ("state",).
-    pretrain: True if the `pretrain` stage trains it in the run's workdir (False: built from fixed weights or from
-      no weights at all).
+    pretrain: the module whose `run(config, workdir)` is the `pretrain` stage that trains it in the run's workdir
+      ("roboshape.train.pretrain" for SAVi); "" for an encoder built from fixed weights or from no weights.
     build: (config, workdir) -> roboshape.models.encoder.FrozenEncoder.
     title: the name tables print ("SAVi").
     description: one line for the README and error messages.
   """
   name: str
   inputs: Tuple[str, ...]
-  pretrain: bool
+  pretrain: str
   build: Callable
   title: str
   description: str
@@ -47,7 +47,8 @@ class Kind:
 
 _REGISTRY: Dict[str, Kind] = {}
 # The modules that register the built-in encoders, imported on first use.
-_MODULES = ("roboshape.encoders.savi", "roboshape.encoders.baselines", "roboshape.encoders.state")
+_MODULES = ("roboshape.encoders.savi", "roboshape.encoders.baselines", "roboshape.encoders.state",
+            "roboshape.encoders.objects")
 
 
 def register(kind: Kind) -> Kind:

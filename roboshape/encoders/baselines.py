@@ -15,8 +15,8 @@ def _dino(config, workdir: str):
 
 
 encoders.register(encoders.Kind(
-    name="r3m", inputs=("image",), pretrain=False, build=_r3m, title="R3M",
+    name="r3m", inputs=("image",), pretrain="", build=_r3m, title="R3M",
     description="R3M ResNet from the official weights (one global token)"))
 encoders.register(encoders.Kind(
-    name="dino", inputs=("image",), pretrain=False, build=_dino, title="DINO",
+    name="dino", inputs=("image",), pretrain="", build=_dino, title="DINO",
     description="DINO ViT from the official weights (the CLS token, optionally the patch tokens)"))

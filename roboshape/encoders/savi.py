@@ -9,5 +9,5 @@ def _build(config, workdir: str):
 
 
 encoders.register(encoders.Kind(
-    name="savi", inputs=("image",), pretrain=True, build=_build, title="SAVi",
+    name="savi", inputs=("image",), pretrain="roboshape.train.pretrain", build=_build, title="SAVi",
     description="slot attention for video, pretrained on the task's frames (K slots per frame)"))

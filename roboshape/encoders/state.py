@@ -42,5 +42,5 @@ def _build(config, workdir: str):
 
 
 encoders.register(encoders.Kind(
-    name="state", inputs=("state",), pretrain=False, build=_build, title="State",
+    name="state", inputs=("state",), pretrain="", build=_build, title="State",
     description="the privileged simulator state as one token (control: the upper bound)"))

@@ -9,7 +9,10 @@ so permuting the slots of a frame leaves every [ACT] output unchanged.
 the observation tokens, one per requested read-out frame q (`act_frames`). Attention mask:
   - observation token of frame f  -> observation tokens of frames <= f (causal over time, all slots of a frame);
   - [ACT] token of frame q        -> observation tokens of frames <= q, and itself;
-  - no token attends to another [ACT] token.
+  - no token attends to another [ACT] token;
+  - no token attends to an observation token that is all exactly zero (padding: the `objects` encoder's token of
+    an absent object), except itself. SAVi slots, global features and the state token are never all zero, so for
+    them this changes nothing; for padded frames the output is as if the padding were not there.
 So the [ACT] token of the last frame sees every history token and no later one, and [ACT] tokens never change
 the observation stream (the last block updates the [ACT] tokens only, since nothing reads the rest): training reads out at every frame of a window (one next-action target each), while
 control reads out at the newest frame only, with the same outputs. Because of the causal mask, the first q + 1
@@ -57,8 +60,14 @@ class Block(nn.Module):
     return x + nn.Dropout(self.dropout, deterministic=not train)(h)
 
 
-def attention_mask(num_frames: int, num_tokens: int, act_frames: jax.Array) -> jax.Array:
-  """The trunk's boolean mask [B, 1, L, L], L = T*N + Q (see the module docstring); act_frames int [B, Q]."""
+def attention_mask(num_frames: int, num_tokens: int, act_frames: jax.Array,
+                   present: Optional[jax.Array] = None) -> jax.Array:
+  """The trunk's boolean mask [B, 1, L, L], L = T*N + Q (see the module docstring); act_frames int [B, Q].
+
+  present: None, or bool [B, T*N], False for the observation tokens no token may attend to (all-zero padding). Such
+  a key is masked in every row but its own, so every row keeps at least one key (itself; an [ACT] token always sees
+  itself). With `present` None or all True the mask is the plain one above.
+  """
   batch, q = act_frames.shape
   obs_frame = jnp.repeat(jnp.arange(num_frames), num_tokens)                   # [T*N]
   obs_frame = jnp.broadcast_to(obs_frame, (batch, obs_frame.shape[0]))
@@ -67,11 +76,17 @@ def attention_mask(num_frames: int, num_tokens: int, act_frames: jax.Array) -> j
   act_obs = obs_frame[:, None, :] <= act_frames[:, :, None]                    # [B, Q, TN]
   act_act = jnp.broadcast_to(jnp.eye(q, dtype=bool), (batch, q, q))            # [B, Q, Q]
   mask = jnp.concatenate([jnp.concatenate([obs_obs, obs_act], -1), jnp.concatenate([act_obs, act_act], -1)], 1)
+  if present is not None:
+    keys = jnp.concatenate([present, jnp.ones((batch, q), bool)], axis=1)     # [B, L]
+    mask = (mask & keys[:, None, :]) | jnp.eye(mask.shape[-1], dtype=bool)
   return mask[:, None]
 
 
 class Trunk(nn.Module):
   """tokens [B, T, N, D] float, act_frames int [B, Q] in [0, T) -> [ACT] outputs [B, Q, width].
+
+  A token that is all exactly zero is padding (an absent object): it is masked out as an attention key (see
+  `attention_mask`), so appending all-zero tokens to a frame leaves the [ACT] outputs unchanged.
 
   Attributes:
     width, num_layers, num_heads, mlp_ratio, dropout: the transformer encoder.
@@ -97,7 +112,8 @@ class Trunk(nn.Module):
     act = act_token + time_emb[act_frames]                                     # [B, Q, W]
     x = jnp.concatenate([x, act], axis=1)
     x = nn.Dropout(self.dropout, deterministic=not train)(x)
-    mask = attention_mask(t, n, act_frames)
+    present = jnp.any(tokens != 0, axis=-1).reshape(b, t * n)               # all-zero tokens: padding
+    mask = attention_mask(t, n, act_frames, present)
     for i in range(self.num_layers):
       last = i == self.num_layers - 1
       x = Block(self.num_heads, self.mlp_ratio, self.dropout, name=f"block_{i}")(

@@ -92,8 +92,9 @@ class _Proc:
 
 
 def _stack(frames: List[dict]) -> Dict[str, np.ndarray]:
-  """The workers' frame dicts stacked into arrays [N, ...]."""
-  return dict(image=np.stack([o["image"] for o in frames]),
+  """The workers' frame dicts stacked into arrays [N, ...] (with depth where the spec asks for it)."""
+  depth = {"depth": np.stack([o["depth"] for o in frames])} if "depth" in frames[0] else {}
+  return dict(**depth, image=np.stack([o["image"] for o in frames]),
               segmentation=np.stack([o["segmentation"] for o in frames]),
               state=np.stack([o["state"] for o in frames]).astype(np.float32),
               success=np.array([o["success"] for o in frames], bool),
@@ -274,7 +275,8 @@ class SimPool:
     """Executes actions float32 [N, 7] (clipped to [-1, 1]) in the N envs of the last reset.
 
     Returns image uint8 [N, H, W, 3], segmentation uint8 [N, H, W], state float32 [N, envs.state.DIM] (the
-    privileged state), success bool [N], done bool [N] (success or horizon) and elapsed int32 [N]. A done env
+    privileged state), depth uint16 [N, H, W] (mm, only with spec.depth), success bool [N], done bool [N]
+    (success or horizon) and elapsed int32 [N]. A done env
     ignores its action and returns its last observation.
     """
     if self._active == 0:

@@ -8,7 +8,7 @@ Commands:
   collect seed    -> episode dict of contract A (the oracle expert run from `seed`, with the privileged state
                      float32 [T+1, envs.state.DIM]; with depth uint16 [T+1, H, W] in millimetres when the spec asks
                      for depth)
-  reset seed      -> frame dict (image, segmentation, state, success, done, elapsed)
+  reset seed      -> frame dict (image, segmentation, state, [depth,] success, done, elapsed)
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
   close           -> exits
 """
@@ -74,9 +74,16 @@ class Worker:
     return self._observe(obs), float(reward[0])
 
   def _frame_dict(self, image, seg) -> dict:
-    self._frame = (image, seg, self._state)
-    return dict(image=image, segmentation=seg, state=self._state, success=self.success, done=self.done,
-                elapsed=self.elapsed)
+    self._frame = (image, seg, self._state, self._depth)
+    return self._last_frame()
+
+  def _last_frame(self) -> dict:
+    image, seg, state, depth = self._frame
+    out = dict(image=image, segmentation=seg, state=state, success=self.success, done=self.done,
+               elapsed=self.elapsed)
+    if depth is not None:
+      out["depth"] = depth
+    return out
 
   def reset(self, seed: int) -> dict:
     return self._frame_dict(*self._reset(seed))
@@ -87,8 +94,7 @@ class Worker:
     if self.done:
       if self._frame is None:
         raise RuntimeError("step before reset: call pool.reset(seeds) first")
-      return dict(image=self._frame[0], segmentation=self._frame[1], state=self._frame[2], success=self.success,
-                  done=True, elapsed=self.elapsed)
+      return self._last_frame()
     (image, seg), _ = self._step(action)
     return self._frame_dict(image, seg)
 
