@@ -146,6 +146,19 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
   ))
 
 
+def ae_config(variant: str) -> ml_collections.ConfigDict:
+  """The `ae` encoder, a frame autoencoder (roboshape/models/ae.py, roboshape/train/pretrain_ae.py).
+
+  Only what SAVi has no field for: every training field (data, steps, batch, schedule, clipping, loss weights,
+  cadence) and the encoder, decoder and pool are read from the savi section, so the pretraining is equal by
+  construction.
+  """
+  del variant
+  return ml_collections.ConfigDict(dict(
+      latent_size=0,            # D, the width of the one token per frame; 0: savi.slot_size (128 at :small)
+  ))
+
+
 def baseline_config(variant: str) -> ml_collections.ConfigDict:
   """Frozen global encoders loaded from official checkpoints (roboshape/baselines)."""
   del variant
@@ -240,6 +253,7 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
       sim=sim_config(scale),
       data=data_config(scale),
       savi=savi_config(scale),
+      ae=ae_config(scale),
       baselines=baseline_config(scale),
       policy=policy_config(scale),
       eval=eval_config(scale),

@@ -11,18 +11,23 @@ or not evaluated at that level) prints as "-".
 """
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
+from roboshape import encoders
+from roboshape.cli import UserError
+
 Cell = Optional[Tuple[float, float]]
 
 LEVELS = ("train", "L1", "L2", "L3")
-ENCODER_ORDER = ("dino", "r3m", "savi")     # the paper's column order
-_ENCODER_NAMES = {"savi": "SAVi", "r3m": "R3M", "dino": "DINO"}
+ENCODER_ORDER = ("dino", "r3m", "ae", "savi", "objects", "state")   # the paper's order, then baseline and controls
 _ROW_NAMES_MD = {"train": "none"}
 _ROW_NAMES_TEX = {"train": r"$\emptyset$"}
 
 
 def encoder_name(encoder: str) -> str:
-  """The display name of an encoder ("savi" -> "SAVi"); unknown names are returned as they are."""
-  return _ENCODER_NAMES.get(encoder, encoder)
+  """The display name of a registered encoder ("savi" -> "SAVi", its Kind's title); others as they are."""
+  try:
+    return encoders.get(encoder).title
+  except UserError:
+    return encoder
 
 
 def level_name(level: str) -> str:
@@ -31,7 +36,8 @@ def level_name(level: str) -> str:
 
 
 def sort_encoders(encoders: Sequence[str]) -> Tuple[str, ...]:
-  """Encoders in the paper's column order (DINO, R3M, SAVi), others after them in the given order."""
+  """Encoders in the paper's column order (DINO, R3M, SAVi, with AE before SAVi and the controls after it), others
+  after them in the given order."""
   known = [e for e in ENCODER_ORDER if e in encoders]
   return tuple(known + [e for e in encoders if e not in ENCODER_ORDER])
 

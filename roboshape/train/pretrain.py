@@ -11,14 +11,19 @@ feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and val
 see roboshape/eval/decomposition.py), figures/ (input, reconstruction and every slot per eval, as PNG),
 val_metrics.json and val_metrics.png (every validation result so far, across resumes, and its curve).
 A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint stays.
+
+The training loop (`fit`), the compiled train step (`Compiled`), the data (`data_source`) and checkpoint restore
+(`restore_latest`) take any reconstruction model of the frames, so other encoders pretrained on the same settings
+reuse them (roboshape/train/pretrain_ae.py).
 """
+import dataclasses
 import functools
 import itertools
 import json
 import math
 import os
 import time
-from typing import Any, Callable, Dict, Iterator, Optional, Sequence
+from typing import Any, Callable, Dict, Iterator, Optional, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -88,16 +93,22 @@ def _schedule(train_config) -> optax.Schedule:
   return optax.warmup_cosine_decay_schedule(0.0, train_config.learning_rate, warmup, max(steps, warmup + 1), 0.0)
 
 
-def _to_float(video: jax.Array) -> jax.Array:
+def to_float(video: jax.Array) -> jax.Array:
+  """uint8 frames [...] -> float32 in [0, 1], the models' input scaling."""
   return video.astype(jnp.float32) / 255.0
 
 
-class _Compiled:
-  """The model, optimizer and jitted functions of one SAVi config, built once per process and config."""
+class Compiled:
+  """The model, optimizer and jitted functions of a frame-reconstruction model trained on `config.savi.train`.
 
-  def __init__(self, savi_json: str, resolution: int):
-    c = _config_from_json(savi_json)
-    self.model = savi.build_model(c, resolution)
+  model: a Flax module with an `input_pool` attribute whose apply on float video [B, L, H, W, 3] in [0, 1] (rng
+  stream "slots" given, used or not) returns recon [B, L, h, w, 3] with h = H / input_pool, and depth [B, L, h, w]
+  (metres) when the savi config's depth weight is > 0. SAVi is one; the AE (roboshape/models/ae.py) another.
+  """
+
+  def __init__(self, model, savi_config):
+    c = savi_config
+    self.model = model
     self.optimizer = make_optimizer(c.train)
     self.schedule = _schedule(c.train)
     self.mesh = Mesh(np.array(jax.devices()), ("data",))
@@ -127,7 +138,7 @@ class _Compiled:
     step_key = jax.random.fold_in(key, state["step"])
 
     def loss_fn(params):
-      frames = _to_float(video)
+      frames = to_float(video)
       target = savi.pool_frames(frames, self.model.input_pool)
       out = self.model.apply({"params": params}, frames, rngs={"slots": step_key})
       terms = {"recon_mse": jnp.mean(jnp.square(out["recon"] - target))}
@@ -144,6 +155,14 @@ class _Compiled:
     metrics = {"loss": loss, **terms, "grad_norm": optax.tree.norm(grads), "lr": self.schedule(state["step"])}
     return {"step": state["step"] + 1, "params": params, "opt_state": opt_state}, metrics
 
+  def _eval_video(self, params, video):
+    """video uint8 [B, T, H, W, 3] -> the model's outputs."""
+    return self.model.apply({"params": params}, to_float(video))
+
+
+class _SaviCompiled(Compiled):
+  """SAVi's: evaluation starts from the frozen encoder's deterministic first-frame slots."""
+
   def initial_slots(self, params, batch_size: int) -> jax.Array:
     """The frozen encoder's deterministic first-frame slots [B, K, D] (the same for every episode)."""
     noise = jax.random.normal(jax.random.key(INIT_SLOTS_SEED), (self.model.num_slots, self.model.slot_size))
@@ -153,25 +172,27 @@ class _Compiled:
   def _eval_video(self, params, video):
     """video uint8 [B, T, H, W, 3] -> the model's outputs from the deterministic first-frame slots."""
     init = self.initial_slots(params, video.shape[0])
-    return self.model.apply({"params": params}, _to_float(video), init_slots=init)
+    return self.model.apply({"params": params}, to_float(video), init_slots=init)
 
 
-def _config_from_json(text: str):
+def config_from_json(text: str):
+  """A ConfigDict from its JSON (the form configs are cached by)."""
   import ml_collections  # pylint: disable=import-outside-toplevel
   return ml_collections.ConfigDict(json.loads(text))
 
 
 @functools.lru_cache(maxsize=8)
-def _compiled_for(savi_json: str, resolution: int) -> _Compiled:
-  return _Compiled(savi_json, resolution)
+def _compiled_for(savi_json: str, resolution: int) -> _SaviCompiled:
+  c = config_from_json(savi_json)
+  return _SaviCompiled(savi.build_model(c, resolution), c)
 
 
-def compiled(config) -> _Compiled:
+def compiled(config) -> _SaviCompiled:
   """The (cached) model and jitted functions for `config.savi` at `config.env.resolution`."""
   return _compiled_for(config.savi.to_json(sort_keys=True), int(config.env.resolution))
 
 
-def evaluate(comp: _Compiled, params, episodes: Sequence[Dict[str, np.ndarray]], eval_config,
+def evaluate(comp: _SaviCompiled, params, episodes: Sequence[Dict[str, np.ndarray]], eval_config,
              figure_path: Optional[str] = None, title: str = "") -> Dict[str, float]:
   """FG-ARI and matched mIoU of the slot masks on whole (first `eval_config.frames` frames of) episodes.
 
@@ -208,31 +229,66 @@ def evaluate(comp: _Compiled, params, episodes: Sequence[Dict[str, np.ndarray]],
             "recon_mse": float(np.mean(mses)) if mses else float("nan")}
 
 
+@dataclasses.dataclass(frozen=True)
+class Validation:
+  """What `fit` does every savi.eval.every steps (and after the last).
+
+  Attributes:
+    run: (params, step) -> metrics {name: float}, written to TensorBoard (val/<name>) and <root>/val_metrics.json.
+    keys: the metrics <root>/val_metrics.png draws against the step.
+    describe: metrics -> the line printed after "[pretrain] step <step>: ".
+    ylim: the curve's y range (None: automatic).
+  """
+  run: Callable[[Any, int], Dict[str, float]]
+  keys: Sequence[str]
+  describe: Callable[[Dict[str, float]], str]
+  ylim: Optional[Tuple[Optional[float], Optional[float]]] = None
+
+
 def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str, np.ndarray]]],
           val_episodes: Sequence[Dict[str, np.ndarray]] = ()) -> Dict[str, Any]:
   """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <workdir>/savi/checkpoints.
 
   batches_from(start_batch) yields the batches from index start_batch on (dicts with video uint8 [B, L, H, W, 3]
   and episode_seed int [B], and depth uint16 [B, L, H, W] when savi.train.depth_weight > 0).
+  val_episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W], scored by `evaluate`.
+  Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
+  """
+  validate_config(config)
+  comp, ec = compiled(config), config.savi.eval
+  root = savi_dir(workdir)
+  validation = None
+  if val_episodes:
+    validation = Validation(
+        run=lambda params, step: evaluate(comp, params, val_episodes[:ec.episodes], ec,
+                                          os.path.join(root, "figures", f"step_{step:07d}.png"),
+                                          f"{config.name} step {step}"),
+        keys=("fg_ari", "fg_ari_frames", "miou"), ylim=(None, 1.0),
+        describe=lambda r: (f"val FG-ARI {r['fg_ari']:.3f} (per frame {r['fg_ari_frames']:.3f}) mIoU "
+                            f"{r['miou']:.3f} recon MSE {r['recon_mse']:.5f}"))
+  return fit(config, root, comp, batches_from, validation, "SAVi")
+
+
+def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterator[Dict[str, np.ndarray]]],
+        validation: Optional[Validation], title: str) -> Dict[str, Any]:
+  """Trains `comp.model` to `config.savi.train.steps` by `comp.train_step`, resuming from <root>/checkpoints.
+
+  Every setting comes from config.savi.train (clip shape, steps, checkpoint and log cadence) and config.savi.eval
+  (validation cadence); TensorBoard scalars go to <root>/tb, validation results to <root>/val_metrics.json.
+  batches_from: as in `train`. validation: None for none. title: the model's name in messages ("SAVi").
   Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
   # pylint: disable=import-outside-toplevel
   from tensorboardX import SummaryWriter
   from tqdm import tqdm
 
-  validate_config(config)
   tc, ec = config.savi.train, config.savi.eval
-  comp = compiled(config)
-  root = savi_dir(workdir)
-  figures = os.path.join(root, "figures")
   history, evals = [], []
   with Checkpointer(os.path.join(root, "checkpoints"), keep=tc.keep_checkpoints) as ckpt:
     start = ckpt.latest_step() or 0
     if start >= tc.steps:
       print(f"[pretrain] already trained to step {start} >= savi.train.steps={tc.steps}; skipping.", flush=True)
-      like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
-      return {"step": start, "params": ckpt.restore(_with_sharding(like, comp.replicated))["params"],
-              "history": history, "eval": evals}
+      return {"step": start, "params": _restore(ckpt, comp, config)["params"], "history": history, "eval": evals}
     key = jax.random.key(config.seed)
     state = jax.device_put(comp.init_state(jax.random.fold_in(key, 1), _clip_shape(config)), comp.replicated)
     if start:
@@ -243,11 +299,13 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
     writer = SummaryWriter(os.path.join(root, "tb"))
     batches = batches_from(start)
     try:
-      for step in tqdm(range(start, tc.steps), initial=start, total=tc.steps, desc="pretrain SAVi", smoothing=0.1):
+      for step in tqdm(range(start, tc.steps), initial=start, total=tc.steps, desc=f"pretrain {title}",
+                       smoothing=0.1):
         batch = next(batches)
         if step == start and tuple(np.shape(batch["video"])) != _clip_shape(config):
-          raise UserError(f"the dataset's clips have shape {tuple(np.shape(batch['video']))}, the SAVi config expects "
-                          f"{_clip_shape(config)} [B, L, H, W, 3]: set --config.env.resolution to the dataset's.")
+          raise UserError(f"the dataset's clips have shape {tuple(np.shape(batch['video']))}, the {title} config "
+                          f"expects {_clip_shape(config)} [B, L, H, W, 3]: set --config.env.resolution to the "
+                          "dataset's.")
         if step == start and comp.depth_weight > 0 and "depth" not in batch:
           raise UserError("savi.train.depth_weight > 0 needs a dataset with depth: collect one with "
                           "--config.env.depth=True (into another --config.data.dir), or set the weight to 0.")
@@ -260,7 +318,7 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
         if not np.isfinite(metrics["loss"]):
           ckpt.wait()
           raise UserError(
-              f"SAVi loss is {metrics['loss']} at step {step} (batch {step}, episode seeds "
+              f"{title} loss is {metrics['loss']} at step {step} (batch {step}, episode seeds "
               f"{np.asarray(batch['episode_seed']).tolist()}); training stopped, the last good checkpoint "
               f"(step {ckpt.latest_step()}) is kept in {ckpt.directory}. Lower --config.savi.train.learning_rate "
               f"or --config.savi.train.clip_norm and run again.")
@@ -271,18 +329,14 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
             writer.add_scalar(f"train/{name}", value, done)
         if done % tc.checkpoint_every == 0 or done == tc.steps:
           ckpt.save(done, state)
-        if val_episodes and (done % ec.every == 0 or done == tc.steps):
-          result = evaluate(comp, state["params"], val_episodes[:ec.episodes], ec,
-                            os.path.join(figures, f"step_{done:07d}.png"), f"{config.name} step {done}")
+        if validation and (done % ec.every == 0 or done == tc.steps):
+          result = validation.run(state["params"], done)
           for name, value in result.items():
             writer.add_scalar(f"val/{name}", value, done)
           evals.append((done, result))
           history_lib.record(root, "val_metrics", done, result, seconds_before + time.perf_counter() - run_start,
-                             keys=("fg_ari", "fg_ari_frames", "miou"), title=f"SAVi validation, {config.name}",
-                             ylim=(None, 1.0))
-          tqdm.write(f"[pretrain] step {done}: val FG-ARI {result['fg_ari']:.3f} (per frame "
-                     f"{result['fg_ari_frames']:.3f}) mIoU {result['miou']:.3f} "
-                     f"recon MSE {result['recon_mse']:.5f}")
+                             keys=validation.keys, title=f"{title} validation, {config.name}", ylim=validation.ylim)
+          tqdm.write(f"[pretrain] step {done}: {validation.describe(result)}")
     finally:
       writer.close()
   return {"step": int(state["step"]), "params": state["params"], "history": history, "eval": evals}
@@ -297,8 +351,31 @@ def _with_sharding(tree, sharding):
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), tree)
 
 
-def run(config, workdir: str) -> None:
-  """The pretrain stage: trains SAVi on the dataset of `config` (roboshape.data) to config.savi.train.steps."""
+def _restore(ckpt: Checkpointer, comp: Compiled, config, step: Optional[int] = None) -> Dict[str, Any]:
+  """The train state {step, params, opt_state} at `step` (the latest when None), replicated over the mesh."""
+  like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
+  return ckpt.restore(_with_sharding(like, comp.replicated), step)
+
+
+def restore_latest(config, workdir: str, comp: Compiled, directory: str, title: str) -> Tuple[Any, int]:
+  """(params, step) of the latest checkpoint in `directory`; a UserError saying how to make one when there is none.
+
+  config and workdir: the run's (for the message); comp: the model the checkpoint holds the train state of.
+  """
+  ckpt = Checkpointer(directory)
+  try:
+    step = ckpt.latest_step()
+    if step is None:
+      raise UserError(f"no {title} checkpoint in {directory}; run the pretrain stage first "
+                      f"(python launch.py --config=configs/{config.name}.py --workdir={workdir}).")
+    return _restore(ckpt, comp, config, step)["params"], step
+  finally:
+    ckpt.close()
+
+
+def data_source(config, workdir: str):
+  """(batches_from, val_episodes) of the run's dataset (roboshape.data) for `fit`: clips of config.savi.train's
+  shape from the train split (batch i always the same), and the first config.savi.eval.episodes val episodes."""
   # pylint: disable=import-outside-toplevel
   from roboshape import data as rdata
   from roboshape.data import reader
@@ -310,8 +387,12 @@ def run(config, workdir: str) -> None:
   def batches_from(start: int):
     return reader.clip_batches(path, "train", tc.clip_length, tc.batch_size, seed=config.seed, start_batch=start)
 
-  val = list(itertools.islice(reader.read_episodes(path, "val"), config.savi.eval.episodes))
-  result = train(config, workdir, batches_from, val)
+  return batches_from, list(itertools.islice(reader.read_episodes(path, "val"), config.savi.eval.episodes))
+
+
+def run(config, workdir: str) -> None:
+  """The pretrain stage: trains SAVi on the dataset of `config` (roboshape.data) to config.savi.train.steps."""
+  result = train(config, workdir, *data_source(config, workdir))
   if result["eval"]:
     step, metrics = result["eval"][-1]
     print(f"[pretrain] step {step}: val FG-ARI {metrics['fg_ari']:.3f}, mIoU {metrics['miou']:.3f}", flush=True)
@@ -324,7 +405,7 @@ def _frozen_step(model: savi.SAVi, params, state, frames):
   with its own number of first-frame iterations runs them, only in a batch that has a first frame in it (on the
   same encoder features).
   """
-  features = model.apply({"params": params}, _to_float(frames), method=savi.SAVi.encode_frame)
+  features = model.apply({"params": params}, to_float(frames), method=savi.SAVi.encode_frame)
   apply = functools.partial(model.apply, {"params": params}, features, state["slots"], method=savi.SAVi.correct)
   later = apply(first=False)
   if model.iterations_first != model.num_iterations:
@@ -334,6 +415,8 @@ def _frozen_step(model: savi.SAVi, params, state, frames):
     later = jax.lax.cond(jnp.any(state["first"]), with_first, lambda later: later, later)
   slots, predicted = later
   return slots, {"slots": predicted, "first": jnp.zeros_like(state["first"])}
+
+
 
 
 def load_encoder(workdir: str) -> FrozenEncoder:
@@ -347,16 +430,7 @@ def load_encoder(workdir: str) -> FrozenEncoder:
   config = stages.load_config(workdir)
   comp = compiled(config)
   directory = os.path.join(savi_dir(workdir), "checkpoints")
-  ckpt = Checkpointer(directory)
-  try:
-    step = ckpt.latest_step()
-    if step is None:
-      raise UserError(f"no SAVi checkpoint in {directory}; run the pretrain stage first "
-                      f"(python launch.py --config=configs/{config.name}.py --workdir={workdir}).")
-    like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
-    params = ckpt.restore(_with_sharding(like, comp.replicated), step)["params"]
-  finally:
-    ckpt.close()
+  params, step = restore_latest(config, workdir, comp, directory, "SAVi")
   init = comp.initial_slots(params, 1)[0]
   return FrozenEncoder(
       name="savi", params=params, step=functools.partial(_frozen_step, comp.model),

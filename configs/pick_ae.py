@@ -1,0 +1,11 @@
+"""Control: task 'pick' with the AE encoder (a frame autoencoder pretrained on the task's own demos exactly as SAVi
+is: the same frames, steps, batches, schedule and loss, read from config.savi; frozen, one token per frame).
+
+Command:  python launch.py --config=configs/pick_ae.py[:paper|small|tiny] --workdir=runs/pick_ae
+Its pretrain stage is roboshape/train/pretrain_ae.py; ae.latent_size sets the token width (0: savi.slot_size).
+"""
+from configs import common
+
+
+def get_config(variant: str = "paper"):
+  return common.get_config("pick", "ae", variant)

@@ -1,0 +1,200 @@
+"""The `ae` encoder (roboshape/models/ae.py, roboshape/train/pretrain_ae.py): a frame autoencoder trained with
+SAVi's settings and loop, frozen to one token per frame; on 16x16 synthetic clips with a 16-wide latent."""
+import itertools
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from configs import common
+from roboshape import encoders
+from roboshape import stages
+from roboshape.cli import UserError
+from roboshape.models import ae
+from roboshape.train import cache
+from roboshape.train import history as history_lib
+from roboshape.train import pretrain
+from roboshape.train import pretrain_ae
+from roboshape.train.checkpoint import Checkpointer
+
+LATENT = 16
+STEPS = 4
+
+
+def tiny_config(steps: int = STEPS):
+  """push x ae at :tiny, shrunk to 16x16 frames: five 8-channel 3x3 convs, an 8x8 grid, two 16-channel decoder
+  layers, a 16-wide latent; batches of 2 clips of 6 frames; checkpoints and validation every 2 steps."""
+  config = common.get_config("push", "ae", "tiny")
+  config.env.resolution = 16
+  config.ae.latent_size = LATENT
+  s = config.savi
+  s.encoder.features, s.encoder.strides, s.encoder.kernel_size = (8,) * 5, (1,) * 5, 3
+  s.encoder.mlp_size, s.encoder.output_size = 16, 16
+  s.decoder.features, s.decoder.strides, s.decoder.kernel_size = (16, 16), (2, 1), 3
+  s.train.steps, s.train.batch_size, s.train.clip_length = steps, 2, 6
+  s.train.learning_rate, s.train.warmup_steps = 3e-3, 2
+  s.train.checkpoint_every, s.train.keep_checkpoints = 2, 3
+  s.eval.every, s.eval.episodes, s.eval.frames = 2, 2, 6
+  return config
+
+
+def clip(seed: int, length: int = 6, size: int = 16) -> np.ndarray:
+  """uint8 [length, size, size, 3]: a coloured square sliding over a grey backdrop and a darker table."""
+  rng = np.random.default_rng(seed)
+  video = np.full((length, size, size, 3), 128, np.uint8)
+  video[:, size // 2:] = 80
+  y, x = rng.integers(0, size - 5, 2)
+  colour = rng.integers(0, 256, 3)
+  for t in range(length):
+    video[t, y:y + 5, (x + t) % (size - 5):(x + t) % (size - 5) + 5] = colour
+  return video
+
+
+class Source:
+  """batches_from(start) for pretrain_ae.train: batch i is fixed by i; remembers the indices it served, and stops
+  with KeyboardInterrupt (a kill) when asked for batch `fail_at`."""
+
+  def __init__(self, fail_at=None):
+    self.fail_at, self.starts, self.served = fail_at, [], []
+
+  def _batch(self, i):
+    if i == self.fail_at:
+      raise KeyboardInterrupt("killed")
+    self.served.append(i)
+    return {"video": np.stack([clip(2 * i), clip(2 * i + 1)]), "episode_seed": np.array([2 * i, 2 * i + 1])}
+
+  def __call__(self, start):
+    self.starts.append(start)
+    return map(self._batch, itertools.count(start))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _cheap_xla():
+  """These tests are bound by compile time: XLA's cheap optimisation level while they run."""
+  flag = "jax_disable_most_optimizations"
+  before = jax.config.read(flag)
+  jax.config.update(flag, True)
+  yield
+  jax.config.update(flag, before)
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+  """STEPS steps in one run, validated on two episodes, with its workdir."""
+  config = tiny_config()
+  workdir = str(tmp_path_factory.mktemp("ae_run"))
+  stages.save_config(config, workdir)
+  result = pretrain_ae.train(config, workdir, Source(), [{"image": clip(100)}, {"image": clip(101)}])
+  return {"config": config, "workdir": workdir, "result": result}
+
+
+def _tree_equal(a, b):
+  return all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b)))
+
+
+def test_the_model_overfits_one_clip_in_rgb_and_depth():
+  """30 steps on one clip (depth weighted as at :small) take the RGB reconstruction MSE below 0.3x its first value
+  (measured: 0.05x) and the depth MSE below 0.5x (0.26x: Adam moves the depth output's bias ~lr per step)."""
+  config = tiny_config(steps=30)
+  config.savi.train.depth_weight = 0.25
+  comp = pretrain_ae.compiled(config)
+  video = np.stack([clip(7), clip(7)])
+  depth = np.where(video[..., 0] == 80, 1000, 400).astype(np.uint16)        # the table 1 m away, the rest 0.4 m
+  state = comp.init_state(jax.random.key(0), video.shape)
+  key = jax.random.key(1)
+  history = []
+  for _ in range(30):
+    state, metrics = comp.train_step(state, video, depth, key)
+    history.append({k: float(v) for k, v in metrics.items()})
+  first, last = history[0], history[-1]
+  assert last["recon_mse"] < 0.3 * first["recon_mse"], (first, last)
+  assert last["depth_mse"] < 0.5 * first["depth_mse"], (first, last)
+  np.testing.assert_allclose(first["loss"], first["recon_mse"] + 0.25 * first["depth_mse"], rtol=1e-5)
+
+
+def test_training_settings_are_savis_by_construction():
+  config = tiny_config()
+  config.savi.train.depth_weight = 0.5
+  ae_comp, savi_comp = pretrain_ae.compiled(config), pretrain.compiled(config)
+  for step in (0, 1, 2, 3):
+    assert float(ae_comp.schedule(step)) == float(savi_comp.schedule(step))
+  assert (ae_comp.rgb_weight, ae_comp.depth_weight) == (savi_comp.rgb_weight, savi_comp.depth_weight) == (1.0, 0.5)
+  assert ae_comp.model.input_pool == savi_comp.model.input_pool
+  assert ae_comp.model.decoder_depth and ae_comp.model.latent_size == LATENT
+  config.ae.latent_size = 0                                            # default: SAVi's slot size
+  assert pretrain_ae.latent_size(config) == config.savi.slot_size
+  config.ae.latent_size = -1
+  with pytest.raises(UserError, match="latent_size"):
+    pretrain_ae.validate_config(config)
+
+
+def test_training_checkpoints_and_records_validation_under_ae(straight):
+  root = pretrain_ae.ae_dir(straight["workdir"])
+  result = straight["result"]
+  assert result["step"] == STEPS and [s for s, _ in result["history"]] == list(range(1, STEPS + 1))
+  entries = history_lib.load(root, "val_metrics")
+  assert [e["step"] for e in entries] == [2, 4] and all(0 < e["recon_mse"] < 1 for e in entries)
+  assert os.path.isfile(os.path.join(root, "val_metrics.png"))
+  with Checkpointer(os.path.join(root, "checkpoints")) as ckpt:
+    assert ckpt.latest_step() == STEPS
+
+
+def test_two_steps_then_two_more_equal_four_straight(straight, tmp_path):
+  config = straight["config"]
+  stages.save_config(config, str(tmp_path))
+  with pytest.raises(KeyboardInterrupt):                               # killed after step 2's checkpoint
+    pretrain_ae.train(config, str(tmp_path), Source(fail_at=2))
+  resumed = Source()
+  result = pretrain_ae.train(config, str(tmp_path), resumed)
+  assert resumed.starts == [2] and resumed.served == [2, 3]
+  assert result["step"] == STEPS and [s for s, _ in result["history"]] == [3, 4]
+  assert _tree_equal(result["params"], straight["result"]["params"])
+  again = Source(fail_at=0)                                            # already trained: no data read
+  assert pretrain_ae.train(config, str(tmp_path), again)["step"] == STEPS and not again.served
+
+
+def test_the_frozen_encoder_gives_one_memoryless_token_per_frame(straight):
+  enc = encoders.get("ae").build(straight["config"], straight["workdir"])
+  assert (enc.name, enc.inputs, enc.num_tokens, enc.token_dim) == ("ae", ("image",), 1, LATENT)
+  assert enc.identity.endswith(f"@{STEPS}") and _tree_equal(enc.params, straight["result"]["params"])
+  videos = np.stack([clip(200), clip(201)])                             # [2, 6, 16, 16, 3]
+  tokens = np.asarray(enc.encode_batch(videos))
+  assert tokens.shape == (2, 6, 1, LATENT) and tokens.dtype == np.float32
+  np.testing.assert_array_equal(tokens, np.asarray(enc.encode_batch(videos)))   # deterministic
+  assert float(tokens.std(axis=1).max()) > 1e-4                                   # frames differ, so do tokens
+  # No memory: a frame's token is the same whatever came before it (reversed, spliced, or alone).
+  np.testing.assert_allclose(enc.encode_episode(videos[0][::-1]), tokens[0][::-1], atol=1e-6)
+  spliced = np.concatenate([videos[1][:3], videos[0][3:]])
+  np.testing.assert_allclose(enc.encode_episode(spliced)[3:], tokens[0, 3:], atol=1e-6)
+  alone, carry = jax.jit(enc.step)(enc.params, enc.init_state(1), videos[1, 4][None])
+  assert carry == () and alone.shape == (1, 1, LATENT)
+  np.testing.assert_allclose(alone[0], tokens[1, 4], atol=1e-6)
+  model = pretrain_ae.compiled(straight["config"]).model
+  latent = model.apply({"params": enc.params}, videos[0].astype(np.float32) / 255.0, method=ae.AE.encode)
+  np.testing.assert_allclose(latent, tokens[0, :, 0], atol=1e-6)
+
+
+def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_path):
+  """launch.py's path for push_ae: the registry's pretrain stage (pretrain_ae) on a real dataset, then the cache."""
+  assert encoders.get("ae").pretrain == "roboshape.train.pretrain_ae"
+  assert "pretrain" in common.get_config("push", "ae", "tiny").stages
+  config = tiny_config()
+  config.data.dir = os.path.dirname(os.path.dirname(synthetic_dataset))  # <dir>/roboshape_push/1.0.0
+  config.stages = ("pretrain", "cache")
+  workdir = str(tmp_path / "push_ae")
+  stages.run(config, workdir)
+  entries = history_lib.load(pretrain_ae.ae_dir(workdir), "val_metrics")
+  assert [e["step"] for e in entries] == [2, 4]
+  enc = pretrain_ae.load_encoder(workdir)
+  features = cache.feature_dir(config, workdir, enc)
+  with open(os.path.join(features, "manifest.json")) as f:
+    manifest = json.load(f)
+  assert (manifest["encoder"], manifest["num_tokens"], manifest["token_dim"]) == ("ae", 1, LATENT)
+  assert manifest["episodes"] == {"train": 4, "val": 2}
+  from roboshape.data import reader  # pylint: disable=import-outside-toplevel
+  episode = next(reader.read_episodes(synthetic_dataset, "val"))
+  cached = cache.load_split(features, "val")
+  length = len(episode["image"])
+  np.testing.assert_allclose(cached["features"][:length], enc.encode_episode(episode["image"]), atol=1e-5)
