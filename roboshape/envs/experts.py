@@ -38,14 +38,17 @@ def _rot_z(yaw: torch.Tensor) -> torch.Tensor:
   return torch.stack([torch.stack([c, -s, z], -1), torch.stack([s, c, z], -1), torch.stack([z, z, o], -1)], -2)
 
 
-def servo(tcp_p, tcp_q, target_p, target_yaw, gripper, max_step: float = 0.6) -> torch.Tensor:
-  """The action [N, 7] moving the tcp toward target_p [N, 3] with the gripper down at target_yaw [N]."""
+def servo(tcp_p, tcp_q, target_p, target_yaw, gripper, max_step: float = 0.6, rot_gain: float = 1.0) -> torch.Tensor:
+  """The action [N, 7] moving the tcp toward target_p [N, 3] with the gripper down at target_yaw [N].
+
+  The rotation action is rot_gain x the orientation error (in units of the controller's 0.1 rad), its norm capped at
+  1: rot_gain 1 saturates beyond 0.1 rad of error; a smaller gain turns proportionally over a wider range."""
   step = (target_p - tcp_p) / POS_SCALE
   norm = torch.linalg.norm(step, dim=1, keepdim=True).clamp(min=1e-9)
   step = step * torch.clamp(max_step / norm, max=1.0)
   rot = rc.quaternion_to_matrix(tcp_q)
   want = _rot_z(target_yaw) @ _DOWN.to(tcp_p)
-  delta = rc.matrix_to_euler_angles(want @ rot.transpose(1, 2), "XYZ") / ROT_SCALE
+  delta = rot_gain * rc.matrix_to_euler_angles(want @ rot.transpose(1, 2), "XYZ") / ROT_SCALE
   rnorm = torch.linalg.norm(delta, dim=1, keepdim=True).clamp(min=1e-9)
   delta = delta * torch.clamp(1.0 / rnorm, max=1.0)
   grip = torch.as_tensor(gripper, dtype=tcp_p.dtype, device=tcp_p.device).expand(tcp_p.shape[0])
@@ -100,17 +103,22 @@ class Expert:
     raise NotImplementedError
 
 
-def _pick_yaw(s, center, base_yaw, zones, choosing):
+def _pick_yaw(s, center, base_yaw, zones, choosing, prefer_current: bool = False):
   """The gripper yaw [N] to use: base_yaw or base_yaw + pi/2 (both mod pi).
 
-  Where `choosing`, the one whose gripper zones at `center` have more clearance (by 5 mm); elsewhere the one nearer
-  the gripper's current yaw, so a choice made while approaching is kept without being remembered. Returns
-  (yaw unwrapped next to the current yaw [N], current yaw [N]).
+  Where `choosing`, the one whose gripper zones at `center` have more clearance (by 5 mm); with `prefer_current`,
+  the one nearer the gripper's current yaw unless its clearance is under 1 cm and the other's is 5 mm more.
+  Elsewhere the one nearer the gripper's current yaw, so a choice made while approaching is kept without being
+  remembered. Returns (yaw unwrapped next to the current yaw [N], current yaw [N]).
   """
   grip_yaw = _yaw(rc.quaternion_to_matrix(s["tcp_q"]))
-  turn_by_room = clearance(s["obstacles"], center, base_yaw + np.pi / 2, zones) > \
-      clearance(s["obstacles"], center, base_yaw, zones) + 0.005
+  room = clearance(s["obstacles"], center, base_yaw, zones)
+  room_turned = clearance(s["obstacles"], center, base_yaw + np.pi / 2, zones)
+  turn_by_room = room_turned > room + 0.005
   turn_by_pose = torch.abs(_wrap(base_yaw + np.pi / 2 - grip_yaw, np.pi)) < torch.abs(_wrap(base_yaw - grip_yaw, np.pi))
+  if prefer_current:
+    near, other = torch.where(turn_by_pose, room_turned, room), torch.where(turn_by_pose, room, room_turned)
+    turn_by_room = turn_by_pose ^ ((near < 0.01) & (other > near + 0.005))
   turn = torch.where(choosing, turn_by_room, turn_by_pose)
   want = base_yaw + turn.float() * (np.pi / 2)
   return grip_yaw + _wrap(want - grip_yaw, np.pi), grip_yaw
@@ -121,9 +129,12 @@ class GraspExpert(Expert):
 
   The phase is read off the state: the cube held (closed fingers in contact) means CARRY; the tcp at the grasp
   point, or the fingers closing around the cube, CLOSE; the tcp above the cube at the grasp yaw, DESCEND; anything
-  else APPROACH (move above the cube, open).
+  else APPROACH (move above the cube, open). It grasps the cube by the face pair nearer the gripper's current yaw
+  unless that side is crowded, and turns proportionally (ROT_GAIN), so its rotation is a smooth function of the
+  state rather than a saturated one whose sign flips between two faces.
   """
   APPROACH, DESCEND, CLOSE, CARRY = 0, 1, 2, 3
+  ROT_GAIN = 0.25   # rotation action per 0.1 rad of error: proportional below 0.4 rad
   OPENED = 0.07   # finger opening (m) above which the gripper counts as open (fully open is about 0.08)
 
   def _grasp_phases(self, s):
@@ -135,7 +146,7 @@ class GraspExpert(Expert):
     grasp_at[:, 2] = torch.clamp(cube[:, 2] - 0.004, min=0.014)
     xy_err = torch.linalg.norm(tcp[:, :2] - cube[:, :2], dim=1)
     near = xy_err < 0.012
-    yaw, grip_yaw = _pick_yaw(s, cube[:, :2], cube_yaw, OPEN_ZONES, choosing=~near)
+    yaw, grip_yaw = _pick_yaw(s, cube[:, :2], cube_yaw, OPEN_ZONES, choosing=~near, prefer_current=True)
     yaw_err = torch.abs(_wrap(yaw - grip_yaw, 2 * np.pi))
 
     held = s["grasped"] & (s["gripper"] > 0.004)
@@ -167,7 +178,7 @@ class PickExpert(GraspExpert):
     carry_target = torch.where(low[:, None], lift, carry_target)
     target = torch.where(carry[:, None], carry_target, target)
     max_step = torch.where(carry, 0.4, 0.6)
-    return _servo_rows(s, target, yaw, gripper, max_step), phase
+    return _servo_rows(s, target, yaw, gripper, max_step, self.ROT_GAIN), phase
 
 
 class PlaceExpert(GraspExpert):
@@ -210,7 +221,7 @@ class PlaceExpert(GraspExpert):
       target = torch.where((phase == p)[:, None], where, target)
     gripper = torch.where(phase >= self.RELEASE, OPEN, gripper)
     max_step = torch.where(phase == self.LOWER, 0.25, torch.where(phase >= self.CARRY, 0.4, 0.6))
-    return _servo_rows(s, target, yaw, gripper, max_step), phase
+    return _servo_rows(s, target, yaw, gripper, max_step, self.ROT_GAIN), phase
 
 
 class PushExpert(Expert):
@@ -253,9 +264,9 @@ class PushExpert(Expert):
     return _servo_rows(s, target, yaw, torch.full_like(yaw, CLOSED), max_step), phase
 
 
-def _servo_rows(s, target, yaw, gripper, max_step) -> torch.Tensor:
+def _servo_rows(s, target, yaw, gripper, max_step, rot_gain: float = 1.0) -> torch.Tensor:
   """`servo` with a per-env gripper [N] and max_step [N]."""
-  action = servo(s["tcp_p"], s["tcp_q"], target, yaw, 0.0, max_step=1.0)
+  action = servo(s["tcp_p"], s["tcp_q"], target, yaw, 0.0, max_step=1.0, rot_gain=rot_gain)
   step = action[:, :3]
   norm = torch.linalg.norm(step, dim=1, keepdim=True).clamp(min=1e-9)
   action[:, :3] = step * torch.clamp(max_step[:, None] / norm, max=1.0)
