@@ -9,6 +9,7 @@ import json
 import os
 import time
 
+from roboshape import config_check
 from roboshape import encoders
 from roboshape import fileio
 from roboshape.cli import UserError
@@ -23,12 +24,68 @@ STAGE_MODULES = {
 }
 
 
+# The fields that make a workdir's config.json another run's: a run resumed or extended keeps them all.
+_RUN_FIELDS = ("task", "encoder", "variant")
+
+
 def save_config(config, workdir: str) -> str:
   """Writes config.json into the workdir (atomically) and returns its path."""
-  os.makedirs(workdir, exist_ok=True)
   path = os.path.join(workdir, "config.json")
-  fileio.atomic_write_text(path, config.to_json_best_effort(indent=2, sort_keys=True))
+  try:
+    os.makedirs(workdir, exist_ok=True)
+    fileio.atomic_write_text(path, config.to_json_best_effort(indent=2, sort_keys=True))
+  except OSError as e:
+    raise UserError(f"cannot write {path} ({e.strerror or e}); give a --workdir you can write to.") from None
   return path
+
+
+def _check_writable(workdir: str) -> None:
+  """Raises UserError unless `workdir` is a directory this process can write in, or can be created as one."""
+  if os.path.exists(workdir) and not os.path.isdir(workdir):
+    raise UserError(f"--workdir {workdir} is a file, not a directory; give a directory (it is created if missing).")
+  existing = os.path.abspath(workdir)
+  while not os.path.exists(existing):
+    existing = os.path.dirname(existing)
+  if not os.path.isdir(existing):
+    raise UserError(f"--workdir {workdir}: {existing} is a file, not a directory; give a path under a directory.")
+  if not os.access(existing, os.W_OK | os.X_OK):
+    raise UserError(f"--workdir {workdir} is not writable ({existing}: permission denied); give a directory you "
+                    "can write to.")
+
+
+def _run_identity(config) -> dict:
+  """What makes two configs the same run: a grid or one run, and task, encoder and variant (a grid: its variant,
+  so a grid extended with more tasks or encoders is the same run)."""
+  grid = "grid" in config
+  fields = ("variant",) if grid else _RUN_FIELDS
+  return dict({f: config[f] for f in fields if f in config}, kind="grid" if grid else "single run")
+
+
+def _check_same_run(config, workdir: str) -> None:
+  """Raises UserError when `workdir` already holds the config.json of another run (see `_run_identity`)."""
+  path = os.path.join(workdir, "config.json")
+  if not os.path.exists(path):
+    return
+  try:
+    with open(path) as f:
+      stored = json.load(f)
+    if not isinstance(stored, dict):
+      raise ValueError("not a JSON object")
+  except (OSError, ValueError) as e:
+    raise UserError(f"{path} is not a readable roboshape config.json ({e}); use another --workdir.") from None
+  mine, theirs = _run_identity(config), _run_identity(stored)
+  differences = [f"{key}: {theirs[key]!r} in {path}, {mine[key]!r} in this config"
+                 for key in mine if key in theirs and theirs[key] != mine[key]]
+  if differences:
+    raise UserError(f"workdir {workdir} holds a run of another config ({'; '.join(differences)}); use another "
+                    "--workdir (nothing in it was changed).")
+
+
+def check_workdir(config, workdir: str) -> None:
+  """Raises UserError, before anything is written, unless `workdir` can hold the run of `config`: a directory
+  (or a path where one can be made) this process can write in, without the config.json of another run."""
+  _check_writable(workdir)
+  _check_same_run(config, workdir)
 
 
 def load_config(workdir: str):
@@ -68,13 +125,15 @@ def run_grid(config, workdir: str) -> None:
 
   A baseline (any encoder but SAVi) whose run raises `UserError` (e.g. its pretrained weights are absent) is
   recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
-  prints it as a "skipped: <reason>" line.
+  prints it as a "skipped: <reason>" line. Every run's config and workdir are checked before the first one starts.
   """
-  unknown = [s for s in config.stages if s not in STAGE_MODULES]
-  if unknown:
-    raise UserError(f"unknown stage(s) {', '.join(unknown)}; stages are {', '.join(STAGE_MODULES)}.")
+  config_check.check(config)
+  runs = list(grid_configs(config, workdir))
+  check_workdir(config, workdir)
+  for _, _, sub, sub_dir in runs:
+    check_workdir(sub, sub_dir)
   save_config(config, workdir)
-  for task, encoder, sub, sub_dir in grid_configs(config, workdir):
+  for task, encoder, sub, sub_dir in runs:
     skipped = os.path.join(sub_dir, "SKIPPED.json")
     print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
     try:
@@ -94,18 +153,19 @@ def run_grid(config, workdir: str) -> None:
 
 
 def run(config, workdir: str) -> None:
-  """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`)."""
+  """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`).
+
+  Before any stage runs and before config.json is written, the whole config is checked (roboshape.config_check)
+  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was.
+  """
   if "grid" in config:
     run_grid(config, workdir)
     return
-  unknown = [s for s in config.stages if s not in STAGE_MODULES]
-  if unknown:
-    raise UserError(f"unknown stage(s) {', '.join(unknown)}; stages are {', '.join(STAGE_MODULES)}.")
+  config_check.check(config)
+  check_workdir(config, workdir)
   save_config(config, workdir)
   for name in config.stages:
     module_name = encoders.get(config.encoder).pretrain if name == "pretrain" else STAGE_MODULES[name]
-    if not module_name:
-      raise UserError(f"the {config.encoder} encoder has no pretrain stage; drop it from --config.stages.")
     try:
       module = importlib.import_module(module_name)
     except ModuleNotFoundError as e:
