@@ -51,15 +51,20 @@ def test_the_state_vector_packs_fields_in_their_documented_places():
   assert "[7:8] gripper" in state_lib.describe()
 
 
-def test_the_state_token_is_the_vector_in_decimetres():
+def test_the_state_token_is_the_vector_in_decimetres_then_relative_positions():
   enc = encoders.get("state").build(common.get_config("push", "state", "tiny"), "")
-  assert (enc.inputs, enc.num_tokens, enc.token_dim) == (("state",), 1, state_lib.DIM)
+  assert (enc.inputs, enc.num_tokens, enc.token_dim) == (("state",), 1, state_lib.DIM + 9)
   states = np.random.default_rng(1).normal(size=(2, 5, state_lib.DIM)).astype(np.float32)
   tokens = np.asarray(enc.encode_batch({"state": states, "image": np.zeros((2, 5, 4, 4, 3), np.uint8)}))
-  assert tokens.shape == (2, 5, 1, state_lib.DIM)
+  assert tokens.shape == (2, 5, 1, state_lib.DIM + 9)
   cuts = state_lib.slices()
   np.testing.assert_allclose(tokens[:, :, 0, cuts["cube_pos"]], 10 * states[..., cuts["cube_pos"]], rtol=1e-6)
   np.testing.assert_allclose(tokens[:, :, 0, cuts["cube_quat"]], states[..., cuts["cube_quat"]], rtol=1e-6)
+  # The cube, the goal (from the tcp) and the goal from the cube, in units of 0.1 m.
+  cube, tcp, goal = (states[..., cuts[k]] for k in ("cube_pos", "tcp_pos", "goal_pos"))
+  relative = tokens[:, :, 0, state_lib.DIM:]
+  np.testing.assert_allclose(relative, np.concatenate([cube - tcp, goal - tcp, goal - cube], -1) * 10, rtol=1e-5,
+                             atol=1e-5)
   scale = state_encoder.token_scale()[cuts["distractors"]].reshape(-1, 5)
   assert (scale[:, :4] == 10).all() and (scale[:, 4] == 1).all()
   with pytest.raises(KeyError, match="lacks state"):
