@@ -37,7 +37,7 @@ def env_config(variant: str) -> ml_collections.ConfigDict:
       min_distractors=1,
       max_distractors=4,
       max_episode_steps=0,      # 0: the task's own horizon (>= 1.5x the expert's 95th percentile)
-      sim_backend="physx_cpu",  # "physx_cuda" batches envs in one process where a GPU is present
+      sim_backend="physx_cpu",  # or "physx_cuda" (physics on a GPU); each worker owns one env either way
       # also store the camera's depth (uint16 mm) in the dataset, for savi.train.depth_weight (the :small's SAVi)
       depth=variant == "small",
   ))

@@ -247,7 +247,7 @@ def _check_env(config) -> None:
   resolution = _value(config, "env.resolution")
   if not _is_int(resolution) or not envs.MIN_RESOLUTION <= resolution <= envs.MAX_RESOLUTION:
     raise UserError(f"env.resolution={resolution!r}: use an int in [{envs.MIN_RESOLUTION}, {envs.MAX_RESOLUTION}] "
-                    "(the camera's side in pixels; 64 is the paper's).")
+                    "(the camera's side in pixels; 64 by default).")
   spec_lib.EnvSpec.from_config(config)
   if not isinstance(_value(config, "env.depth", False), bool):
     raise UserError(f"env.depth={config.env.depth!r}: use True or False (also store the camera's depth).")

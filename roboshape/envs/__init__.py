@@ -20,7 +20,7 @@ def check_args(task: str, level: str, resolution: int = 64) -> None:
   if (isinstance(resolution, bool) or not isinstance(resolution, int)
       or not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION):
     raise ValueError(f"camera resolution {resolution!r} not supported; use an int in "
-                     f"[{MIN_RESOLUTION}, {MAX_RESOLUTION}] (64 is the paper's).")
+                     f"[{MIN_RESOLUTION}, {MAX_RESOLUTION}] (64 by default: the paper states no camera resolution).")
 
 
 def explain_construction_error(e: BaseException) -> str:

@@ -14,7 +14,7 @@ class EnvSpec:
   """One RoboShape environment: task, generalization level and camera.
 
   max_episode_steps: 0 uses the task's own horizon (>= 1.5x the expert's 95th-percentile episode length).
-  sim_backend: "physx_cpu" (one env per worker) or "physx_cuda" where a GPU is present.
+  sim_backend: "physx_cpu" or "physx_cuda" (the physics on a GPU); either way a worker owns one env.
   depth: also render the camera's depth (uint16 millimetres), stored with collected episodes.
   """
   task: str
