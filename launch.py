@@ -30,4 +30,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  sys.exit(cli.run_app(main, sys.argv))
+  cli.exit_process(cli.run_app(main, sys.argv))

@@ -2,10 +2,18 @@
 
 `UserError` is what roboshape raises for bad input (a missing file, an unknown task, a dataset of another config):
 the message says what to do, and the command exits with status 2 and no traceback.
+
+Ctrl-C (SIGINT) and SIGTERM end a run with one line, `roboshape: interrupted; run the same command to resume`, and
+exit status 130 / 143 (`run_app`, then `exit_process`): the signal raises in the main thread, so each stage's
+`with` blocks close what they hold (the checkpoint writer finishes the checkpoint in flight, simulator workers are
+shut down); a second signal while that happens exits at once (every stage resumes after a kill as well).
 """
 import difflib
+import logging
 import os
+import signal
 import sys
+import threading
 from typing import Callable, Sequence
 
 from absl import app
@@ -14,6 +22,49 @@ from absl import flags
 
 class UserError(Exception):
   """Bad input from the person running roboshape; the message says what to do."""
+
+
+INTERRUPTED = "interrupted; run the same command to resume"
+INTERRUPT_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+
+
+class Terminated(KeyboardInterrupt):
+  """SIGTERM, raised in the main thread like Ctrl-C's KeyboardInterrupt (so everything that cleans up after one
+  cleans up after the other)."""
+
+
+def _exit_code(e: KeyboardInterrupt) -> int:
+  return 128 + (signal.SIGTERM if isinstance(e, Terminated) else signal.SIGINT)
+
+
+def _on_signal(signum, frame) -> None:
+  """The first SIGINT/SIGTERM raises in the main thread; a second one, while the first is cleaned up, exits now."""
+  del frame
+  if getattr(_on_signal, "seen", False):
+    print(f"roboshape: {INTERRUPTED}", file=sys.stderr, flush=True)
+    os._exit(128 + signum)  # pylint: disable=protected-access
+  _on_signal.seen = True
+  _quiet_after_interrupt()   # orbax logs the save it breaks off as it re-raises, before any `except` sees it
+  raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _install_signal_handlers():
+  """Routes SIGINT and SIGTERM to `_on_signal` (main thread only); returns the previous handlers."""
+  if threading.current_thread() is not threading.main_thread():
+    return {}
+  _on_signal.seen = False
+  previous = {}
+  for signum in (signal.SIGINT, signal.SIGTERM):
+    if signal.getsignal(signum) is not signal.SIG_IGN:   # a background job keeps ignoring Ctrl-C
+      previous[signum] = signal.signal(signum, _on_signal)
+  return previous
+
+
+def _quiet_after_interrupt() -> None:
+  """Silences what background threads (orbax's checkpoint writer, tf.data) log or raise after an interrupt: the one
+  line `run_app` prints says what happened."""
+  logging.disable(logging.CRITICAL)
+  threading.excepthook = lambda args: None
 
 
 def _fail(message: str, code: int = 2) -> int:
@@ -68,6 +119,20 @@ def _check_overrides(argv: Sequence[str]) -> None:
     raise UserError(f"bad command-line flag: {_root_cause(e)}") from None
 
 
+def exit_process(code: int) -> None:
+  """Ends the process with `code` (what `run_app` returned).
+
+  After an interrupt (130, 143) it does not wait for background threads: a checkpoint write the signal broke off
+  leaves orbax threads waiting forever for a step that never comes. What they leave is unfinished and ignored (the
+  next run resumes from the last complete checkpoint); every finished write was waited for before.
+  """
+  if code in INTERRUPT_CODES:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)  # pylint: disable=protected-access
+  sys.exit(code)
+
+
 def run_app(main: Callable[[Sequence[str]], None], argv: Sequence[str]) -> int:
   """Runs an absl main with UserError (and bad flags) turned into a one-line message and exit status 2."""
   try:
@@ -76,10 +141,18 @@ def run_app(main: Callable[[Sequence[str]], None], argv: Sequence[str]) -> int:
     return _fail(str(e))
   if flags.FLAGS["config"].present == 0 and "config" in flags.FLAGS and flags.FLAGS["config"].value is None:
     return _fail("--config is required, e.g. --config=configs/pick_savi.py:tiny")
+  previous = _install_signal_handlers()
   try:
     app.run(main, argv=[argv[0]] + [a for a in argv[1:] if not a.startswith("-")], flags_parser=lambda a: a)
   except UserError as e:
     return _fail(str(e))
+  except KeyboardInterrupt as e:
+    _quiet_after_interrupt()
+    print(f"roboshape: {INTERRUPTED}", file=sys.stderr, flush=True)
+    return _exit_code(e)
   except SystemExit as e:
     return 0 if e.code is None else (e.code if isinstance(e.code, int) else 1)
+  finally:
+    for signum, handler in previous.items():
+      signal.signal(signum, handler)
   return 0

@@ -9,10 +9,11 @@ import pytest  # pylint: disable=wrong-import-position
 
 
 def _synthetic_episode(seed: int, task: str = "push", resolution: int = 16, num_actions: int = 0,
-                       success: bool = True, level: str = "train") -> dict:
+                       success: bool = True, level: str = "train", state: bool = False) -> dict:
   """A fake simulator episode (the dict roboshape.sim yields): a red square sliding over a grey table.
 
-  Deterministic per seed; num_actions 0 picks 8-15 actions from the seed. image uint8 [T+1,H,W,3].
+  Deterministic per seed; num_actions 0 picks 8-15 actions from the seed. image uint8 [T+1,H,W,3]; with `state`
+  also a privileged state float32 [T+1, 65] (as the simulator workers return it).
   """
   rng = np.random.default_rng(seed)
   steps = num_actions or int(rng.integers(8, 16))
@@ -27,10 +28,14 @@ def _synthetic_episode(seed: int, task: str = "push", resolution: int = 16, num_
     x = (x0 + t) % (resolution - size)
     image[t, y0:y0 + size, x:x + size] = (200, 30, 30)
     segmentation[t, y0:y0 + size, x:x + size] = 3
-  return dict(task=task, level=level, seed=int(seed), success=bool(success), env_version="synthetic-1",
-              terminated=bool(success), image=image, segmentation=segmentation,
-              action=rng.uniform(-1, 1, (steps, 7)).astype(np.float32),
-              reward=rng.uniform(0, 1, steps).astype(np.float32))
+  episode = dict(task=task, level=level, seed=int(seed), success=bool(success), env_version="synthetic-1",
+                 terminated=bool(success), image=image, segmentation=segmentation,
+                 action=rng.uniform(-1, 1, (steps, 7)).astype(np.float32),
+                 reward=rng.uniform(0, 1, steps).astype(np.float32))
+  if state:
+    from roboshape.envs import state as state_lib  # pylint: disable=import-outside-toplevel
+    episode["state"] = rng.uniform(-1, 1, (steps + 1, state_lib.DIM)).astype(np.float32)
+  return episode
 
 
 @pytest.fixture(scope="session")

@@ -45,7 +45,7 @@ class FakePool:
     order = seeds[1::2] + seeds[0::2]  # completion order differs from seed order
     for seed in order:
       time.sleep(self.delay)
-      yield _synthetic_episode(seed, self.task, self.resolution, success=not self.failing(seed))
+      yield _synthetic_episode(seed, self.task, self.resolution, success=not self.failing(seed), state=True)
 
 
 def _config(task="push", train=6, resolution=16, **overrides):
@@ -165,7 +165,7 @@ def test_same_config_gives_the_same_dataset_whatever_the_completion_order(refere
   class ReversedPool(FakePool):
     def collect(self, seeds):
       for seed in reversed(list(seeds)):
-        yield _synthetic_episode(seed, "push", 16, success=seed % 4 != 1)
+        yield _synthetic_episode(seed, "push", 16, success=seed % 4 != 1, state=True)
 
   _collect(config, path, ReversedPool())
   def digests(st):
@@ -400,9 +400,9 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   np.testing.assert_array_equal(obs["depth"][0], stored["depth"][0])
   objects = encoders.get("objects").build(common.get_config("push", "objects", "small"), "")
   assert objects.inputs == ("image", "segmentation", "depth")
-  np.testing.assert_array_equal(
+  np.testing.assert_allclose(   # the same frame; batch shapes may change float sums in the last bits
       np.asarray(objects.encode_episode({k: stored[k] for k in objects.inputs}))[0],
-      np.asarray(objects.encode_batch({k: obs[k][:, None] for k in objects.inputs}))[0, 0])
+      np.asarray(objects.encode_batch({k: obs[k][:, None] for k in objects.inputs}))[0, 0], rtol=0, atol=1e-6)
   cuts = state_lib.slices()
   first = stored["state"][0]
   assert first[cuts["cube_pos"]][2] == pytest.approx(0.02, abs=2e-3)    # the cube rests on the table

@@ -390,8 +390,10 @@ def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
         raise stages.UserError("DINO weights not found: set --config.baselines.dino.path")
 
   monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
+  real_import = stages.importlib.import_module    # the global one: other imports (jax's, flax's) must still work
   monkeypatch.setattr(stages.importlib, "import_module",
-                      lambda name: Stage if name == "fake_train_policy" else report)
+                      lambda name, *args, **kwargs: (Stage if name == "fake_train_policy"
+                                                     else real_import(name, *args, **kwargs)))
   stages.run(config, str(tmp_path))
   assert [e for e, _ in calls] == ["savi", "dino"]
   md = open(tmp_path / "report" / "report.md").read()

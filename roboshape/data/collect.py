@@ -12,13 +12,17 @@ never imports SAPIEN and writes them with TFDS. Shards are committed atomically 
 run killed at any moment (SIGKILL included) and started again with the same command re-collects only the seeds
 after the last committed shard: nothing is lost and nothing is written twice. A complete dataset is never
 rewritten; a dataset of another config in the same place is refused.
+
+Damaged shards: whenever it finds a dataset, the stage checks every recorded shard's size and sha256 against
+roboshape.json (about 30 ms for a :small dataset) and re-collects a missing, truncated or corrupted shard from its
+recorded seeds; the new file replaces it only when it is byte for byte the recorded one (`repair_shards`).
 """
 import contextlib
 import errno
 import fcntl
 import os
 import time
-from typing import Any, Dict, Iterator, Mapping
+from typing import Any, Dict, Iterator, List, Mapping, Sequence
 
 import tqdm
 
@@ -211,6 +215,60 @@ class _SplitCollector:
     self.pending, self.pending_failed = [], []
 
 
+def repair_shards(pool, path: str, state: Mapping[str, Any], progress: bool = True) -> List[str]:
+  """Re-collects every recorded shard of the dataset at `path` whose file is missing or differs from its record.
+
+  Each damaged shard is collected again from its recorded seeds with `pool` and written back only when it is byte
+  for byte the recorded one (size and sha256): the dataset ends as it was collected. A simulator of another env
+  version, or one that gives other episodes, is a UserError that names the shard and says to collect again.
+  Returns the repaired shards' file names.
+  """
+  damaged = rlds.shard_problems(path, state)
+  if not damaged:
+    return []
+  first = os.path.join(path, damaged[0]["file"])
+  version = getattr(pool, "env_version", None)
+  if state["env_version"] and version and version != state["env_version"]:
+    raise UserError(f"shard {first} is {damaged[0]['problem']}, and the simulator (env version {version!r}) is not "
+                    f"the one that collected it ({state['env_version']!r}): delete {path} and collect again.")
+  for item in damaged:
+    shard = state["splits"][item["split"]]["shards"][item["index"]]
+    if progress:
+      print(f"[collect] shard {item['file']} is {item['problem']}: re-collecting its {len(shard['seeds'])} "
+            "episode(s) from their recorded seeds", flush=True)
+    episodes = _collect_seeds(pool, shard["seeds"], os.path.join(path, item["file"]))
+    if not state["config"].get("state", False):   # a dataset begun before the state was stored
+      episodes = [{k: v for k, v in e.items() if k != "state"} for e in episodes]
+    rlds.rewrite_shard(path, state, item["split"], item["index"], episodes)
+  return [item["file"] for item in damaged]
+
+
+def _collect_seeds(pool, seeds: Sequence[int], file: str) -> List[Dict[str, Any]]:
+  """The episodes of `seeds`, in their order, from `pool` (restarting a dead worker like `_SplitCollector`)."""
+  got: Dict[int, Any] = {}
+  restarts = 0
+  while len(got) < len(seeds):
+    try:
+      for episode in pool.collect([s for s in seeds if s not in got]):
+        if int(episode["seed"]) in seeds:
+          got[int(episode["seed"])] = episode
+    except Exception as e:  # pylint: disable=broad-except
+      if not _is_worker_error(e) or restarts >= _MAX_WORKER_RESTARTS:
+        raise
+      restarts += 1
+      pool.restart()
+      continue
+    missing = [s for s in seeds if s not in got]
+    if missing:
+      raise RuntimeError(f"the simulator pool returned no episode for seeds {missing[:5]}")
+  failed = [s for s in seeds if not bool(got[s]["success"])]
+  if failed:
+    raise UserError(f"re-collecting the damaged shard {file}: the expert now fails seed(s) {failed[:5]} it "
+                    f"solved before (the simulator differs from the one that collected it): delete "
+                    f"{os.path.dirname(file)} and collect again.")
+  return [got[s] for s in seeds]
+
+
 def collect_dataset(pool, path: str, summary: Mapping[str, Any], targets: Mapping[str, int],
                     progress: bool = True) -> Dict[str, Any]:
   """Collects (or finishes) the dataset at `path` with `pool` (anything with `collect(seeds) -> episodes`).
@@ -219,14 +277,15 @@ def collect_dataset(pool, path: str, summary: Mapping[str, Any], targets: Mappin
   """
   with _exclusive(path):
     state = check_compatible(path, summary)
+    repaired = repair_shards(pool, path, state, progress) if state is not None else []
     if state is not None and state["complete"]:
-      return {"complete": True, "already_complete": True}
+      return {"complete": True, "already_complete": True, "repaired": repaired}
     version = getattr(pool, "env_version", None)
     if state is not None and state["env_version"] and version and version != state["env_version"]:
       raise UserError(f"{path} was partly collected with env version {state['env_version']!r}, the simulator is "
                       f"now {version!r}: delete it and collect again (or go back to the old roboshape).")
     writer = rlds.DatasetWriter(path, summary, targets, seed_bases=SEED_BASES)
-    report = {"complete": False, "already_complete": False}
+    report = {"complete": False, "already_complete": False, "repaired": repaired}
     for split in data_lib.SPLITS:
       report[split] = _SplitCollector(pool, writer, split, progress).run()
     writer.finish()
@@ -235,8 +294,14 @@ def collect_dataset(pool, path: str, summary: Mapping[str, Any], targets: Mappin
 
 
 def _print_report(path: str, report: Mapping[str, Any]) -> None:
+  if report.get("repaired"):
+    print(f"[collect] re-collected {len(report['repaired'])} damaged shard(s) of {path}; each is again byte for "
+          "byte the one recorded", flush=True)
   if report.get("already_complete"):
-    print(f"[collect] {path} already holds the complete dataset of this config; nothing to do.", flush=True)
+    if report.get("repaired"):
+      print(f"[collect] dataset complete: {path}", flush=True)
+    else:
+      print(f"[collect] {path} already holds the complete dataset of this config; nothing to do.", flush=True)
     return
   for split in data_lib.SPLITS:
     r = report[split]
@@ -254,7 +319,7 @@ def run(config, workdir: str) -> None:
   _check_workdir_task(config, workdir)
   summary = config_summary(config)
   state = check_compatible(path, summary)
-  if state is not None and state["complete"]:
+  if state is not None and state["complete"] and not rlds.shard_problems(path, state):
     _print_report(path, {"already_complete": True})
     return
   from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel

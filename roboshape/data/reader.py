@@ -71,10 +71,39 @@ def _to_python(episode: Dict[str, Any]) -> Dict[str, Any]:
   return episode
 
 
-def _iterate(ds: tf.data.Dataset) -> Iterator[Dict[str, Any]]:
+def _iterate(ds: tf.data.Dataset, path: str, state: Dict[str, Any], split: str) -> Iterator[Dict[str, Any]]:
   ds = ds.map(_flatten, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True).prefetch(2)
-  for episode in tfds.as_numpy(ds):
-    yield _to_python(episode)
+  try:
+    for episode in tfds.as_numpy(ds):
+      yield _to_python(episode)
+  except tf.errors.OpError as e:   # DataLossError on a truncated or corrupted record, NotFoundError, ...
+    raise _damaged(path, state, split, e) from None
+
+
+def _damaged(path: str, state: Dict[str, Any], split: str, error: Exception) -> UserError:
+  """The one-line UserError for a shard of `split` that fails to read, naming it when its checksum tells which."""
+  from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
+  found = rlds.shard_problems(path, state, splits=(split,))
+  if found:
+    return _shard_error(path, found[0])
+  first = (str(error).strip().splitlines() or [type(error).__name__])[0][:200]
+  return UserError(f"reading split {split!r} of the dataset at {path} failed ({type(error).__name__}: {first}); "
+                   f"run `python -m roboshape.data.validate {path}` to find the damaged shard, then the collect "
+                   "stage again to re-collect it.")
+
+
+def _shard_error(path: str, problem: Dict[str, Any]) -> UserError:
+  return UserError(f"shard {os.path.join(path, problem['file'])} is {problem['problem']}: run the collect stage "
+                   "again to re-collect it (it re-collects damaged shards), or "
+                   f"`python -m roboshape.data.validate {path}` to check the whole dataset.")
+
+
+def check_shards(path: str, state: Dict[str, Any], split: str) -> None:
+  """A UserError naming the first shard of `split` that is missing or not of its recorded size (cheap: no hash)."""
+  from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
+  found = rlds.shard_problems(path, state, splits=(split,), hashes=False)
+  if found:
+    raise _shard_error(path, found[0])
 
 
 def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iterator[Dict[str, Any]]:
@@ -85,6 +114,8 @@ def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iter
   discount float32 [S], is_first / is_last / is_terminal bool [S], seed int, success bool, task, level,
   env_version str; S = T + 1 (the last step holds the final frame and a zero action).
   allow_incomplete: read a dataset whose collection has not finished (tools); training refuses one.
+  A missing, truncated or corrupted shard is a one-line UserError naming it (sizes are checked before reading,
+  checksums when a record fails to decode).
   """
   state = load_state(path)
   if not allow_incomplete:
@@ -93,8 +124,9 @@ def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iter
     raise UserError(f"unknown split {split!r}; the dataset at {path} has {', '.join(state['splits'])}.")
   if not state["splits"][split]["shards"]:
     return iter(())
+  check_shards(path, state, split)
   builder = tfds.builder_from_directory(path)
-  return _iterate(builder.as_dataset(split=split, shuffle_files=False))
+  return _iterate(builder.as_dataset(split=split, shuffle_files=False), path, state, split)
 
 
 class ShardReader:

@@ -24,7 +24,9 @@ Writing: `DatasetWriter` writes each shard to a temporary file and renames it in
 step count, size, sha256) in roboshape.json and rewrites the TFDS metadata (dataset_info.json, features.json), each
 file replaced atomically. So at any moment the directory is a readable dataset of the shards committed so far,
 roboshape.json says whether it is complete, and a killed writer loses at most the shard it was writing.
-`write_dataset` writes whole splits at once (tests, tools) without any simulator.
+`write_dataset` writes whole splits at once (tests, tools) without any simulator. `shard_problems` finds the shards
+whose file is missing or differs from its record, and `rewrite_shard` puts one back from its episodes when the new
+file is byte for byte the recorded one (the collect stage re-collects damaged shards this way).
 """
 import copy
 import errno
@@ -190,6 +192,84 @@ def load_state(path: str) -> Optional[Dict[str, Any]]:
   return state
 
 
+def shard_problems(path: str, state: Mapping[str, Any], splits: Optional[Sequence[str]] = None,
+                   hashes: bool = True) -> List[Dict[str, Any]]:
+  """The recorded shards of the dataset at `path` whose file is missing, or differs from roboshape.json's record.
+
+  Args:
+    path: the dataset directory.
+    state: its roboshape.json (`load_state`).
+    splits: the splits to check (default: all).
+    hashes: also compare the sha256 of every shard whose size matches (about 30 ms for a :small dataset).
+  Returns:
+    [{"split", "index", "file", "problem"}], problem e.g. "missing" or "truncated or changed (10 bytes, 20
+    recorded)", in split and shard order.
+  """
+  found = []
+  for split, info in state["splits"].items():
+    if splits is not None and split not in splits:
+      continue
+    for index, shard in enumerate(info["shards"]):
+      problem = _shard_problem(os.path.join(path, shard["file"]), shard, hashes)
+      if problem:
+        found.append({"split": split, "index": index, "file": shard["file"], "problem": problem})
+  return found
+
+
+def _shard_problem(file: str, shard: Mapping[str, Any], hashes: bool) -> str:
+  """What is wrong with one shard file against its record ("" when nothing is)."""
+  if not os.path.isfile(file):
+    return "missing"
+  size = os.path.getsize(file)
+  if size != shard["num_bytes"]:
+    return f"truncated or changed ({size} bytes, {shard['num_bytes']} recorded)"
+  if hashes and file_sha256(file) != shard["sha256"]:
+    return "corrupted (its sha256 differs from the recorded one)"
+  return ""
+
+
+def rewrite_shard(path: str, state: Mapping[str, Any], split: str, index: int,
+                  episodes: Sequence[Mapping[str, Any]]) -> None:
+  """Writes shard `index` of `split` again from its `episodes` (the recorded seeds, in order), in place.
+
+  The new file replaces the old one (atomically) only when its size and sha256 are those roboshape.json records,
+  so a repaired dataset is byte for byte the one collected; otherwise nothing changes and a UserError says to
+  collect again.
+  """
+  shard = state["splits"][split]["shards"][index]
+  seeds = [int(e["seed"]) for e in episodes]
+  if seeds != shard["seeds"]:
+    raise ValueError(f"shard {shard['file']} records seeds {shard['seeds']}, got episodes of seeds {seeds}")
+  config = state["config"]
+  serialize = EpisodeSerializer(features(int(config["resolution"]), bool(config.get("depth", False)),
+                                         bool(config.get("state", False))))
+  final = os.path.join(path, shard["file"])
+  tmp = final + ".tmp"
+  try:
+    _write_records(tmp, [serialize(e) for e in episodes])
+    same = os.path.getsize(tmp) == shard["num_bytes"] and file_sha256(tmp) == shard["sha256"]
+    if same:
+      os.replace(tmp, final)
+  finally:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+  if not same:
+    raise UserError(f"re-collecting the damaged shard {final} gave other bytes than recorded (the simulator "
+                    f"differs from the one that collected it): delete {path} and collect again.")
+
+
+class EpisodeSerializer:
+  """Simulator episodes -> tf.train.Example bytes of `feats`, identical from run to run (deterministic map order)."""
+
+  def __init__(self, feats: tfds.features.FeaturesDict):
+    self.features = feats
+    self._serializer = example_serializer.ExampleSerializer(feats.get_serialized_info())
+
+  def __call__(self, episode: Mapping[str, Any]) -> bytes:
+    example = self._serializer.get_tf_example(self.features.encode_example(to_rlds(episode)))
+    return example.SerializeToString(deterministic=True)
+
+
 class DatasetWriter:
   """Writes one RoboShape dataset shard by shard, resumable: what is committed stays, and is readable at once.
 
@@ -222,7 +302,7 @@ class DatasetWriter:
     self.depth = bool(state["config"].get("depth", False))
     self.has_state = bool(state["config"].get("state", False))
     self.features = features(self.resolution, self.depth, self.has_state)
-    self._serializer = example_serializer.ExampleSerializer(self.features.get_serialized_info())
+    self._serialize = EpisodeSerializer(self.features)
     os.makedirs(path, exist_ok=True)
     self._remove_stale_files()
 
@@ -244,11 +324,6 @@ class DatasetWriter:
       stale_shard = name.startswith(prefix) and ".tfrecord-" in name and name not in recorded
       if name.endswith(".tmp") or stale_shard:
         os.remove(os.path.join(self.path, name))
-
-  def _serialize(self, episode: Mapping[str, Any]) -> bytes:
-    """The episode's tf.train.Example bytes, identical from run to run (deterministic map order)."""
-    example = self._serializer.get_tf_example(self.features.encode_example(to_rlds(episode)))
-    return example.SerializeToString(deterministic=True)
 
   def add_shard(self, split: str, episodes: Sequence[Mapping[str, Any]], failed_seeds: Sequence[int] = (),
                 next_seed: Optional[int] = None) -> Dict[str, Any]:

@@ -24,6 +24,8 @@ Outputs in <workdir>/eval/: results.jsonl (the log), results.json (every rollout
 table.md, table.tex, success_by_level.png, videos/<level>_s<seed>.{mp4,gif} for the first
 `config.eval.videos_per_level` rollouts of each level, and for SAVi videos/<...>_slots.{mp4,gif}: the camera frame,
 SAVi's reconstruction and every slot beside it (roboshape.eval.videos.SaviSlotVideo, the paper's Figure 8).
+Videos are written under a temporary name and renamed, so a kill leaves none half-written; a resumed evaluation
+re-runs the logged rollouts whose planned video is missing, to record it (their logged results stand).
 """
 import collections
 import dataclasses
@@ -173,6 +175,12 @@ def policy_fingerprint(workdir: str) -> str:
   return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
+def _has_video(log: results_lib.ResultLog, r: Rollout, stem: Callable[[Rollout, str], str]) -> bool:
+  """Whether the logged rollout `r` has its video (a rollout lost to a crashed worker has none to make)."""
+  logged = next(rec for rec in log.records if results_lib.key(rec) == (r.level, r.seed))
+  return logged["ended"] == "worker_crash" or videos.exists(stem(r, logged["ended"]))
+
+
 def _slot_video_fn(config, workdir):
   """The SAVi slot-decomposition video maker (frames -> frames), for SAVi runs only."""
   if config.encoder != "savi":
@@ -251,33 +259,58 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
                       config.eval.seed_offset)
   log = results_lib.ResultLog(os.path.join(workdir, "eval", "results.jsonl"), fingerprint)
   video_dir = os.path.join(workdir, "eval", "videos")
+  videos.remove_partial(video_dir)       # left by a run killed while writing one
   slot_video = _slot_video_fn(config, workdir) if slot_videos else None
+
+  def stem(r: Rollout, ended: str) -> str:
+    return os.path.join(video_dir, f"{r.level}_s{r.seed}_{ended}")
+
+  def write_videos(r: Rollout, result: Dict, frames: np.ndarray) -> None:
+    path = stem(r, result["ended"])
+    videos.write_video(frames, path, fps=config.eval.video_fps)
+    if slot_video is not None:
+      try:
+        videos.write_video(slot_video(frames), path + "_slots", fps=config.eval.video_fps, scale=2)
+      except UserError as e:   # e.g. no SAVi checkpoint: the rollout itself stands
+        tqdm.write(f"[roboshape] SAVi slot video of {path} left out: {e}")
 
   def on_done(r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
     log.append(dict(task=config.task, encoder=config.encoder, level=r.level, seed_index=r.seed_index,
                     rollout=r.rollout, seed=r.seed, **result))
     if frames is not None:
-      stem = os.path.join(video_dir, f"{r.level}_s{r.seed}_{result['ended']}")
-      videos.write_video(frames, stem, fps=config.eval.video_fps)
-      if slot_video is not None:
-        try:
-          videos.write_video(slot_video(frames), stem + "_slots", fps=config.eval.video_fps, scale=2)
-        except UserError as e:   # e.g. no SAVi checkpoint: the rollout itself stands
-          tqdm.write(f"[roboshape] SAVi slot video of {stem} left out: {e}")
+      write_videos(r, result, frames)
+
+  def on_rerecorded(r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
+    logged = next(rec for rec in log.records if results_lib.key(rec) == (r.level, r.seed))
+    if frames is None:
+      tqdm.write(f"[roboshape] the video of {r.level}/seed {r.seed} is still missing: its rollout lost its worker")
+      return
+    if (result["success"], result["length"]) != (logged["success"], logged["length"]):
+      tqdm.write(f"[roboshape] note: re-recorded {r.level}/seed {r.seed} ended {result['ended']} after "
+                 f"{result['length']} steps, the logged rollout {logged['ended']} after {logged['length']}")
+    write_videos(r, result, frames)
 
   start = time.time()
   for level in tuple(config.eval.levels):
     planned = [r for r in plan if r.level == level]
     todo = [r for r in planned if not log.done(r.level, r.seed)]
     done = [rec for rec in log.records if rec["level"] == level and rec["ended"] != "worker_crash"]
-    if not todo:
+    recorded = planned[:config.eval.videos_per_level]
+    missing = [r for r in recorded if log.done(r.level, r.seed) and not _has_video(log, r, stem)]
+    if not todo and not missing:
       print(f"[roboshape] evaluate {level}: all {len(planned)} rollouts already done", flush=True)
       continue
     with make_pool(level) as pool:
-      run_rollouts(pool, policy, todo, on_done, record=planned[:config.eval.videos_per_level],
-                   max_retries=config.eval.max_retries, worker_error=worker_error,
-                   desc=f"evaluate {config.task}/{config.encoder}/{level}",
-                   initial=(len(done), sum(bool(r["success"]) for r in done)))
+      if todo:
+        run_rollouts(pool, policy, todo, on_done, record=recorded,
+                     max_retries=config.eval.max_retries, worker_error=worker_error,
+                     desc=f"evaluate {config.task}/{config.encoder}/{level}",
+                     initial=(len(done), sum(bool(r["success"]) for r in done)))
+      if missing:
+        print(f"[roboshape] evaluate {level}: {len(missing)} video(s) missing from {video_dir}; re-recording "
+              "their rollouts (the logged results stand)", flush=True)
+        run_rollouts(pool, policy, missing, on_rerecorded, record=missing, max_retries=config.eval.max_retries,
+                     worker_error=worker_error, desc=f"re-record videos {config.task}/{config.encoder}/{level}")
   keys = {(r.level, r.seed) for r in plan}
   paths = write_outputs(config, workdir, [r for r in log.records if results_lib.key(r) in keys])
   print(f"[roboshape] evaluation done in {time.time() - start:.0f}s: {os.path.abspath(paths['md'])}", flush=True)

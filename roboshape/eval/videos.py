@@ -27,10 +27,30 @@ def side_by_side(panels: Sequence[np.ndarray], gap: int = 2) -> np.ndarray:
   return np.concatenate(parts, axis=2)
 
 
+FORMATS = ("mp4", "gif")
+_PARTIAL = ".tmp."     # `stem`.tmp.mp4: a video being written (the extension tells imageio the format)
+
+
+def exists(stem: str, formats: Sequence[str] = FORMATS) -> bool:
+  """Whether a video `stem`.<format> was written (in any of `formats`)."""
+  return any(os.path.isfile(f"{stem}.{fmt}") for fmt in formats)
+
+
+def remove_partial(directory: str) -> List[str]:
+  """Deletes the half-written videos a killed `write_video` left in `directory`; returns their names."""
+  if not os.path.isdir(directory):
+    return []
+  partial = sorted(n for n in os.listdir(directory) if any(n.endswith(f"{_PARTIAL}{fmt}") for fmt in FORMATS))
+  for name in partial:
+    os.remove(os.path.join(directory, name))
+  return partial
+
+
 def write_video(frames: np.ndarray, stem: str, fps: int = 20, scale: int = 4,
-                formats: Sequence[str] = ("mp4", "gif")) -> List[str]:
+                formats: Sequence[str] = FORMATS) -> List[str]:
   """Writes `stem`.mp4 and `stem`.gif from uint8 [T, H, W, 3]; returns the paths written.
 
+  Each file is written under a temporary name and renamed into place, so a video is either whole or absent.
   A format whose writer is unavailable (e.g. no ffmpeg) is skipped with a warning rather than failing the run.
   """
   import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
@@ -43,17 +63,21 @@ def write_video(frames: np.ndarray, stem: str, fps: int = 20, scale: int = 4,
   os.makedirs(os.path.dirname(stem) or ".", exist_ok=True)
   written = []
   for fmt in formats:
-    path = f"{stem}.{fmt}"
+    path, tmp = f"{stem}.{fmt}", f"{stem}{_PARTIAL}{fmt}"
     try:
       if fmt == "mp4":
-        imageio.mimwrite(path, list(frames), fps=fps, codec="libx264", quality=8, macro_block_size=16)
+        imageio.mimwrite(tmp, list(frames), fps=fps, codec="libx264", quality=8, macro_block_size=16)
       elif fmt == "gif":
-        imageio.mimwrite(path, list(frames), duration=1.0 / fps, loop=0)
+        imageio.mimwrite(tmp, list(frames), duration=1.0 / fps, loop=0)
       else:
         raise ValueError(f"unknown video format {fmt!r}")
+      os.replace(tmp, path)
     except Exception as e:  # pylint: disable=broad-except
       print(f"[roboshape] warning: could not write {path}: {e}", flush=True)
       continue
+    finally:
+      if os.path.exists(tmp):
+        os.remove(tmp)
     written.append(path)
   return written
 

@@ -199,18 +199,77 @@ def policy_dir(workdir: str) -> str:
   return os.path.join(workdir, "policy")
 
 
+ENCODER_FILE = "encoder.json"
+
+
+def _portable(identity: str, workdir: str) -> str:
+  """An encoder identity with the workdir's absolute path as "<workdir>", so a moved workdir keeps its identities."""
+  return identity.replace(os.path.abspath(workdir), "<workdir>")
+
+
+def check_encoder(workdir: str, identity: str) -> None:
+  """Raises a one-line UserError when the policy in `workdir` was trained on another encoder than `identity`.
+
+  <workdir>/policy/encoder.json records the encoder a policy was trained on (written by `train`); a run trained
+  before it existed is not checked.
+  """
+  out = policy_dir(workdir)
+  path = os.path.join(out, ENCODER_FILE)
+  if not os.path.exists(path):
+    return
+  with open(path) as f:
+    trained_on = json.load(f)["identity"]
+  now = _portable(identity, workdir)
+  if trained_on != now:
+    raise UserError(f"the policy in {out} was trained on encoder {trained_on}, the workdir's encoder is now {now}: "
+                    f"its actions would be meaningless. Delete {out} (or move it away) to train the policy again "
+                    "on the current encoder.")
+
+
+def _record_encoder(config, workdir: str, feature_path: str, resuming: bool) -> None:
+  """Checks the cached features' encoder against the one the policy was trained on, and records it when new."""
+  manifest = cache.read_manifest(feature_path)
+  if manifest is None:
+    raise UserError(f"no complete feature cache in {feature_path} (no manifest.json): run the cache stage first.")
+  path = os.path.join(policy_dir(workdir), ENCODER_FILE)
+  if resuming:
+    check_encoder(workdir, manifest["encoder_identity"])
+    if os.path.exists(path):
+      return
+  fileio.atomic_write_json(path, dict(encoder=manifest.get("encoder", config.encoder),
+                                      identity=_portable(manifest["encoder_identity"], workdir),
+                                      features=os.path.basename(os.path.normpath(feature_path))))
+
+
+def _trained(ckpt: Checkpointer, steps: int, summary_path: str) -> bool:
+  """Whether training is done: a summary and a last checkpoint at `steps` or later that restores."""
+  latest = ckpt.latest_step()
+  return latest is not None and latest >= steps and os.path.exists(summary_path) and ckpt.restores(latest)
+
+
 def train(config, workdir: str, feature_path: str) -> dict:
-  """Trains (or resumes) the policy on the features cached in `feature_path`; returns the final validation metrics."""
-  pc, tc = config.policy, config.policy.train
+  """Trains (or resumes) the policy on the features cached in `feature_path`; returns the final validation metrics.
+
+  Resumes from the newest checkpoint that restores (a damaged newer one is set aside with a warning). A policy
+  whose checkpoints were trained on another encoder than the features' is refused (`check_encoder`).
+  """
   out = policy_dir(workdir)
   os.makedirs(out, exist_ok=True)
-  ckpt = Checkpointer(os.path.join(out, "checkpoints"), keep=2)
-  summary_path = os.path.join(out, "summary.json")
-  if (ckpt.latest_step() or 0) >= tc.steps and os.path.exists(summary_path):
-    print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
-    ckpt.close()
-    with open(summary_path) as f:
-      return json.load(f)
+  with Checkpointer(os.path.join(out, "checkpoints"), keep=2) as ckpt:
+    _record_encoder(config, workdir, feature_path, resuming=ckpt.latest_step() is not None)
+    summary_path = os.path.join(out, "summary.json")
+    if _trained(ckpt, config.policy.train.steps, summary_path):
+      print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
+      with open(summary_path) as f:
+        return json.load(f)
+    summary = _fit(config, out, feature_path, ckpt)
+  fileio.atomic_write_json(summary_path, summary)
+  return summary
+
+
+def _fit(config, out: str, feature_path: str, ckpt: Checkpointer) -> dict:
+  """The training loop of `train`, from the newest checkpoint in `ckpt` that restores; returns the summary."""
+  pc, tc = config.policy, config.policy.train
   train_data, val_data = cache.load_split(feature_path, "train"), cache.load_split(feature_path, "val")
   stats_path = os.path.join(out, "norm_stats.json")
   if os.path.exists(stats_path):
@@ -231,7 +290,7 @@ def train(config, workdir: str, feature_path: str) -> dict:
   optimizer, schedule = make_optimizer(tc), make_schedule(tc)
   n, d = train_data["features"].shape[1:]
   state = init_state(net, optimizer, (tc.batch_size, pc.history, n, d), config.seed)
-  state = ckpt.restore_or(state)
+  state, _ = ckpt.resume(state)
   train_step, eval_step = make_train_step(net, optimizer), make_eval_step(net)
   start = int(state["step"])
   base_rng = jax.random.PRNGKey(config.seed)
@@ -240,46 +299,50 @@ def train(config, workdir: str, feature_path: str) -> dict:
   metrics = None
   val = {}
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
-  for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
-    batch = train_w.sample(tc.batch_size, config.seed, step)
-    state, metrics = train_step(state, batch, base_rng)
-    done = step + 1
-    if done % tc.log_every == 0 or done == tc.steps:
-      for k, v in metrics.items():
-        writer.add_scalar(f"train/{k}", float(v), done)
-      writer.add_scalar("train/learning_rate", float(schedule(step)), done)
-    if done % tc.eval_every == 0 or done == tc.steps:
-      val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
-      writer.add_scalar("val/nll", val["nll"], done)
-      writer.add_scalar("val/action_mse", val["action_mse"], done)
-      history_lib.record(out, "val_metrics", done, dict(val, train_nll=float(metrics["nll"])),
-                         seconds_before + time.perf_counter() - run_start, keys=("train_nll", "nll", "action_mse"),
-                         title=f"policy validation, {config.name}")
-      tqdm.write(f"[train_policy] step {done}: train nll {float(metrics['nll']):.3f}, "
-                 f"val nll {val['nll']:.3f}, val action mse {val['action_mse']:.5f}")
-    if done % tc.checkpoint_every == 0 or done == tc.steps:
-      ckpt.save(done, state)
-  writer.close()
-  ckpt.close()
+  try:
+    for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
+      batch = train_w.sample(tc.batch_size, config.seed, step)
+      state, metrics = train_step(state, batch, base_rng)
+      done = step + 1
+      if done % tc.log_every == 0 or done == tc.steps:
+        for k, v in metrics.items():
+          writer.add_scalar(f"train/{k}", float(v), done)
+        writer.add_scalar("train/learning_rate", float(schedule(step)), done)
+      if done % tc.eval_every == 0 or done == tc.steps:
+        val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
+        writer.add_scalar("val/nll", val["nll"], done)
+        writer.add_scalar("val/action_mse", val["action_mse"], done)
+        history_lib.record(out, "val_metrics", done, dict(val, train_nll=float(metrics["nll"])),
+                           seconds_before + time.perf_counter() - run_start, keys=("train_nll", "nll", "action_mse"),
+                           title=f"policy validation, {config.name}")
+        tqdm.write(f"[train_policy] step {done}: train nll {float(metrics['nll']):.3f}, "
+                   f"val nll {val['nll']:.3f}, val action mse {val['action_mse']:.5f}")
+      if done % tc.checkpoint_every == 0 or done == tc.steps:
+        ckpt.save(done, state)
+  finally:
+    writer.close()      # what TensorBoard got so far, also after an interrupt
+  ckpt.wait()
   if not val:
     val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
-  summary = dict(step=int(state["step"]), val_nll=val["nll"], val_action_mse=val["action_mse"],
-                 train_episodes=train_w.num_episodes, val_episodes=val_w.num_episodes,
-                 features=os.path.abspath(feature_path))
-  fileio.atomic_write_json(summary_path, summary)
-  return summary
+  return dict(step=int(state["step"]), val_nll=val["nll"], val_action_mse=val["action_mse"],
+              train_episodes=train_w.num_episodes, val_episodes=val_w.num_episodes,
+              features=os.path.abspath(feature_path))
 
 
 def run(config, workdir: str) -> None:
-  """The train_policy stage: caches the features if the cache stage has not, then trains."""
+  """The train_policy stage: caches the features if the cache stage has not, then trains.
+
+  A policy trained on another encoder than the workdir's now (e.g. SAVi pretrained further since) is refused.
+  """
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  encoder = encoders.build_encoder(config, workdir)
+  check_encoder(workdir, encoder.identity)
   ckpt_dir = os.path.join(policy_dir(workdir), "checkpoints")
-  if os.path.isdir(ckpt_dir) and os.path.exists(os.path.join(policy_dir(workdir), "summary.json")):
+  if os.path.isdir(ckpt_dir):
     with Checkpointer(ckpt_dir) as ckpt:
-      if (ckpt.latest_step() or 0) >= config.policy.train.steps:
+      if _trained(ckpt, config.policy.train.steps, os.path.join(policy_dir(workdir), "summary.json")):
         print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
         return
-  encoder = encoders.build_encoder(config, workdir)
   train(config, workdir, cache.build(config, workdir, encoder))
 
 
@@ -319,6 +382,7 @@ def load_policy(workdir: str, history: Optional[int] = None, action: Optional[st
   from roboshape import stages  # pylint: disable=import-outside-toplevel
   config = stages.load_config(workdir)
   encoder = encoders.build_encoder(config, workdir)
+  check_encoder(workdir, encoder.identity)
   net, params = load_params(config, workdir, encoder.num_tokens, encoder.token_dim, step)
   with open(os.path.join(policy_dir(workdir), "norm_stats.json")) as f:
     stats = json.load(f)

@@ -287,12 +287,14 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
   with Checkpointer(os.path.join(root, "checkpoints"), keep=tc.keep_checkpoints) as ckpt:
     start = ckpt.latest_step() or 0
     if start >= tc.steps:
-      print(f"[pretrain] already trained to step {start} >= savi.train.steps={tc.steps}; skipping.", flush=True)
-      return {"step": start, "params": _restore(ckpt, comp, config)["params"], "history": history, "eval": evals}
+      restored, start = ckpt.restore_latest(_abstract_state(comp, config), set_aside=True)
+      if start >= tc.steps:
+        print(f"[pretrain] already trained to step {start} >= savi.train.steps={tc.steps}; skipping.", flush=True)
+        return {"step": start, "params": restored["params"], "history": history, "eval": evals}
     key = jax.random.key(config.seed)
     state = jax.device_put(comp.init_state(jax.random.fold_in(key, 1), _clip_shape(config)), comp.replicated)
     if start:
-      state = ckpt.restore(state)
+      state, start = ckpt.resume(state)     # the newest step that restores; damaged newer ones are set aside
       print(f"[pretrain] resuming from step {start}", flush=True)
     step_key = jax.random.fold_in(key, 2)
     seconds_before, run_start = history_lib.seconds_at(root, "val_metrics", start), time.perf_counter()
@@ -351,24 +353,25 @@ def _with_sharding(tree, sharding):
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), tree)
 
 
-def _restore(ckpt: Checkpointer, comp: Compiled, config, step: Optional[int] = None) -> Dict[str, Any]:
-  """The train state {step, params, opt_state} at `step` (the latest when None), replicated over the mesh."""
+def _abstract_state(comp: Compiled, config):
+  """The shapes, dtypes and (replicated) shardings of the train state {step, params, opt_state}."""
   like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
-  return ckpt.restore(_with_sharding(like, comp.replicated), step)
+  return _with_sharding(like, comp.replicated)
 
 
 def restore_latest(config, workdir: str, comp: Compiled, directory: str, title: str) -> Tuple[Any, int]:
-  """(params, step) of the latest checkpoint in `directory`; a UserError saying how to make one when there is none.
+  """(params, step) of the newest checkpoint in `directory` that restores (a damaged newer one is skipped with a
+  one-line warning); a UserError saying how to make one when there is none.
 
   config and workdir: the run's (for the message); comp: the model the checkpoint holds the train state of.
   """
   ckpt = Checkpointer(directory)
   try:
-    step = ckpt.latest_step()
-    if step is None:
+    if ckpt.latest_step() is None:
       raise UserError(f"no {title} checkpoint in {directory}; run the pretrain stage first "
                       f"(python launch.py --config=configs/{config.name}.py --workdir={workdir}).")
-    return _restore(ckpt, comp, config, step)["params"], step
+    state, step = ckpt.restore_latest(_abstract_state(comp, config))
+    return state["params"], step
   finally:
     ckpt.close()
 

@@ -1,0 +1,390 @@
+"""Reliability: damaged dataset shards are re-collected, damaged checkpoints fall back to an older step, a policy
+refuses an encoder it was not trained on, videos are written atomically and rebuilt on resume, and an interrupt
+ends in one line. Tiny shapes throughout: the whole file runs in well under a minute on 2 CPU cores."""
+import json
+import os
+import shutil
+
+import pytest
+
+from configs import common
+from conftest import _synthetic_episode
+from roboshape import data as data_lib
+from roboshape.cli import UserError
+from roboshape.data import collect
+from roboshape.data import reader
+from roboshape.data import rlds
+
+
+# ------------------------------------------------------------------------------------------------ dataset shards
+
+
+class FakePool:
+  """Stands in for roboshape.sim.SimPool: synthetic episodes (seeds % 4 == 1 fail); records the seeds asked for."""
+
+  def __init__(self, env_version="synthetic-1", brightness=0):
+    self.env_version, self.brightness = env_version, brightness
+    self.requested = []
+
+  def collect(self, seeds):
+    for seed in seeds:
+      self.requested.append(seed)
+      episode = _synthetic_episode(seed, success=seed % 4 != 1, state=True)
+      episode["image"] = episode["image"] + self.brightness     # another simulator: other pixels
+      yield episode
+
+
+def _data_config():
+  config = common.get_config("push", "savi", "tiny")
+  config.data.train_episodes, config.env.resolution = 4, 16
+  return config
+
+
+def _collect(config, path, pool):
+  return collect.collect_dataset(pool, path, collect.config_summary(config), collect.split_targets(config),
+                                 progress=False)
+
+
+def _files(path):
+  """{shard file: bytes} of a dataset."""
+  out = {}
+  for name in sorted(os.listdir(path)):
+    if ".tfrecord-" in name:
+      with open(os.path.join(path, name), "rb") as f:
+        out[name] = f.read()
+  return out
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+  """A complete dataset collected with FakePool (4 train shards of one episode, 1 val shard): (config, path)."""
+  config = _data_config()
+  path = str(tmp_path_factory.mktemp("reference") / "roboshape_push" / "1.0.0")
+  _collect(config, path, FakePool())
+  return config, path
+
+
+def _damaged_copy(dataset, tmp_path):
+  """A copy of the dataset with train shard 1 truncated, shard 2 deleted and shard 3 with flipped bytes."""
+  _, path = dataset
+  copy = str(tmp_path / "roboshape_push" / "1.0.0")
+  shutil.copytree(path, copy)
+  shards = rlds.load_state(copy)["splits"]["train"]["shards"]
+  with open(os.path.join(copy, shards[1]["file"]), "r+b") as f:
+    f.truncate(shards[1]["num_bytes"] // 2)
+  os.remove(os.path.join(copy, shards[2]["file"]))
+  with open(os.path.join(copy, shards[3]["file"]), "r+b") as f:
+    f.seek(shards[3]["num_bytes"] // 2)
+    f.write(b"\x00\xff\x00\xff")
+  return copy, shards
+
+
+def test_readers_name_a_damaged_shard_in_one_line(dataset, tmp_path):
+  _, path = dataset
+  copy = str(tmp_path / "flipped")
+  shutil.copytree(path, copy)
+  shard = rlds.load_state(copy)["splits"]["train"]["shards"][2]
+  with open(os.path.join(copy, shard["file"]), "r+b") as f:           # same size: found only when decoding fails
+    f.seek(shard["num_bytes"] // 2)
+    f.write(b"\x00\xff\x00\xff")
+  with pytest.raises(UserError) as e:
+    list(reader.read_episodes(copy, "train"))
+  message = str(e.value)
+  assert "\n" not in message and shard["file"] in message and "corrupted" in message
+  assert f"python -m roboshape.data.validate {copy}" in message
+  os.remove(os.path.join(copy, shard["file"]))                       # missing: found before reading
+  with pytest.raises(UserError, match=f"shard .*{shard['file']} is missing: run the collect stage again"):
+    reader.read_episodes(copy, "train")
+  with pytest.raises(UserError, match="is missing"):
+    next(reader.clip_batches(copy, "train", clip_length=2, batch_size=2))
+
+
+def test_collect_recollects_exactly_the_damaged_shards(dataset, tmp_path):
+  config, path = dataset
+  copy, shards = _damaged_copy(dataset, tmp_path)
+  before = {f: os.path.getmtime(os.path.join(copy, f)) for f in os.listdir(copy)}
+  pool = FakePool()
+  report = _collect(config, copy, pool)
+  assert report["already_complete"] and report["repaired"] == [s["file"] for s in shards[1:4]]
+  assert pool.requested == [seed for s in shards[1:4] for seed in s["seeds"]]          # their seeds, nothing else
+  assert _files(copy) == _files(path)                                                  # byte for byte
+  untouched = [f for f in before if f not in report["repaired"] and f != ".collect.lock"]
+  assert all(os.path.getmtime(os.path.join(copy, f)) == before[f] for f in untouched)
+  assert not any(name.endswith(".tmp") for name in os.listdir(copy))
+  assert [e["seed"] for e in reader.read_episodes(copy, "train")] == [s["seeds"][0] for s in shards]
+
+
+def test_collect_stage_repairs_a_complete_dataset_and_skips_an_intact_one(dataset, tmp_path, monkeypatch, capsys):
+  import roboshape.sim  # pylint: disable=import-outside-toplevel
+  config, path = dataset
+  workdir = str(tmp_path / "run")
+  started = []
+
+  class Pool(FakePool):
+    def __init__(self, spec, num_workers):
+      super().__init__()
+      started.append((spec.task, num_workers))
+
+    def __enter__(self):
+      return self
+
+    def __exit__(self, *exc):
+      pass
+
+  monkeypatch.setattr(roboshape.sim, "SimPool", Pool)
+  shutil.copytree(os.path.dirname(os.path.dirname(path)), os.path.join(workdir, "data"))
+  copy = data_lib.dataset_path(config, workdir)
+  collect.run(config, workdir)
+  assert not started and "already holds the complete dataset" in capsys.readouterr().out
+  state = rlds.load_state(copy)
+  os.remove(os.path.join(copy, state["splits"]["val"]["shards"][0]["file"]))
+  collect.run(config, workdir)
+  out = capsys.readouterr().out
+  assert started == [("push", config.sim.num_workers)]
+  assert "is missing: re-collecting its 1 episode(s)" in out and "re-collected 1 damaged shard(s)" in out
+  assert f"dataset complete: {copy}" in out
+  assert _files(copy) == _files(path)
+
+
+def test_a_shard_that_cannot_be_made_again_is_refused_and_left_alone(dataset, tmp_path):
+  config, _ = dataset
+  copy, shards = _damaged_copy(dataset, tmp_path)
+  before = _files(copy)
+  with pytest.raises(UserError) as e:
+    _collect(config, copy, FakePool(brightness=1))
+  message = str(e.value)
+  assert "\n" not in message and shards[1]["file"] in message and f"delete {copy} and collect again" in message
+  assert _files(copy) == before and not any(name.endswith(".tmp") for name in os.listdir(copy))
+  with pytest.raises(UserError, match=r"env version 'synthetic-2'.*delete .* and collect again"):
+    _collect(config, copy, FakePool(env_version="synthetic-2"))
+  assert _files(copy) == before
+
+
+# ------------------------------------------------------------------------------------ checkpoints and the encoder
+
+RES, K, D = 8, 2, 4
+
+
+def _toy_encoder(identity="toy-v1"):
+  """A fixed random projection of each frame into K tokens (no memory); `identity` names its weights."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  from roboshape.models.encoder import FrozenEncoder  # pylint: disable=import-outside-toplevel
+  w = jax.random.normal(jax.random.PRNGKey(3), (RES * RES * 3, K * D)) / 16.0
+
+  def step(params, state, frames):
+    x = frames.reshape(frames.shape[0], -1).astype(jnp.float32) / 255.0
+    return jnp.tanh(x @ params["w"]).reshape(-1, K, D), state
+
+  return FrozenEncoder(name="toy", params={"w": w}, step=step, init_state=lambda b: (), num_tokens=K,
+                       token_dim=D, identity=identity)
+
+
+def _policy_config(steps=20):
+  config = common.get_config("pick", "savi", "tiny")
+  config.env.resolution = RES
+  p = config.policy
+  p.history, p.width, p.num_layers, p.num_heads, p.dropout = 2, 16, 1, 2, 0.0
+  p.train.update(dict(steps=steps, batch_size=4, warmup_steps=2, log_every=10, eval_every=10,
+                      checkpoint_every=10, val_batch_size=4))
+  return config
+
+
+@pytest.fixture(scope="module")
+def policy_run(tmp_path_factory):
+  """A workdir with a toy-encoder feature cache and a tiny policy trained 20 steps (checkpoints 10 and 20)."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  from roboshape.train import cache  # pylint: disable=import-outside-toplevel
+  workdir = str(tmp_path_factory.mktemp("policy_run"))
+  config = _policy_config()
+  rng = np.random.default_rng(0)
+  episodes = [dict(task="pick", level="train", seed=s, success=True, env_version="test", terminated=True,
+                   image=rng.integers(0, 255, (7, RES, RES, 3), dtype=np.uint8),
+                   segmentation=np.zeros((7, RES, RES), np.uint8),
+                   action=rng.uniform(-1, 1, (6, 7)).astype(np.float32), reward=np.zeros((6,), np.float32))
+              for s in range(2)]
+  rlds.write_dataset(data_lib.dataset_path(config, workdir), {"train": episodes, "val": episodes})
+  with open(os.path.join(workdir, "config.json"), "w") as f:
+    f.write(config.to_json())
+  features = cache.build(config, workdir, _toy_encoder())
+  bc.train(config, workdir, features)
+  return dict(workdir=workdir, config=config, features=os.path.basename(features))
+
+
+def _copy_run(policy_run, tmp_path):
+  """A private copy of the trained workdir: (workdir, its feature directory)."""
+  workdir = str(tmp_path / "run")
+  shutil.copytree(policy_run["workdir"], workdir)
+  return workdir, os.path.join(workdir, "features", policy_run["features"])
+
+
+def _damage_step(workdir, step):
+  """Truncates the biggest file (the arrays) of one policy checkpoint."""
+  root = os.path.join(workdir, "policy", "checkpoints", str(step))
+  files = [os.path.join(d, n) for d, _, names in os.walk(root) for n in names]
+  biggest = max(files, key=os.path.getsize)
+  with open(biggest, "r+b") as f:
+    f.truncate(os.path.getsize(biggest) // 2)
+
+
+def _params(config, workdir, step=None):
+  import jax  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  return [np.asarray(x) for x in jax.tree.leaves(bc.load_params(config, workdir, K, D, step)[1])]
+
+
+def _same(a, b):
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  return len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+def test_a_damaged_checkpoint_falls_back_to_the_older_step(policy_run, tmp_path, capsys):
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  config = policy_run["config"]
+  workdir, features = _copy_run(policy_run, tmp_path)
+  trained, at_10 = _params(config, workdir), _params(config, workdir, step=10)
+  ckpt_dir = os.path.join(workdir, "policy", "checkpoints")
+  _damage_step(workdir, 20)
+  capsys.readouterr()
+  assert _same(_params(config, workdir), at_10)            # loading: falls back, leaves the files as they are
+  warning = (f"[roboshape] checkpoint step 20 in {ckpt_dir} does not restore (")
+  err = capsys.readouterr().err
+  assert warning in err and err.strip().endswith("falling back to step 10") and len(err.strip().splitlines()) == 1
+  assert sorted(os.listdir(ckpt_dir)) == ["10", "20"]
+  with pytest.raises(UserError, match="checkpoint step 20 in .* does not restore .*load another step"):
+    _params(config, workdir, step=20)
+  summary = bc.train(config, workdir, features)           # resuming: from step 10 again, to the same step 20
+  err = capsys.readouterr().err
+  assert warning in err and "falling back to step 10" in err and "damaged_step_20" in err
+  assert sorted(os.listdir(ckpt_dir)) == ["10", "20", "damaged_step_20"]
+  assert summary["step"] == 20 and _same(_params(config, workdir), trained)
+
+
+def test_no_checkpoint_that_restores_is_one_line(policy_run, tmp_path):
+  workdir, _ = _copy_run(policy_run, tmp_path)
+  _damage_step(workdir, 10)
+  _damage_step(workdir, 20)
+  with pytest.raises(UserError) as e:
+    _params(policy_run["config"], workdir)
+  message = str(e.value)
+  assert "\n" not in message and message.startswith("no checkpoint in ") and "restores (step 20:" in message
+  assert sorted(os.listdir(os.path.join(workdir, "policy", "checkpoints"))) == ["10", "20"]   # nothing moved
+
+
+def test_a_policy_refuses_an_encoder_it_was_not_trained_on(policy_run, tmp_path, monkeypatch):
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  from roboshape.eval import closed_loop  # pylint: disable=import-outside-toplevel
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  from roboshape.train import cache  # pylint: disable=import-outside-toplevel
+  config = policy_run["config"]
+  workdir, _ = _copy_run(policy_run, tmp_path)
+  with open(os.path.join(workdir, "policy", "encoder.json")) as f:
+    assert json.load(f) == dict(encoder="toy", identity="toy-v1", features=policy_run["features"])
+  monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: _toy_encoder("toy-v1"))
+  assert bc.load_policy(workdir).encoder.identity == "toy-v1"         # the encoder it was trained on: fine
+  monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: _toy_encoder("toy-v2"))
+  policy_dir = os.path.join(workdir, "policy")
+  message = (f"the policy in {policy_dir} was trained on encoder toy-v1, the workdir's encoder is now toy-v2: "
+             f"its actions would be meaningless. Delete {policy_dir} (or move it away)")
+  before = sorted(os.listdir(policy_dir))
+  for attempt in (lambda: bc.load_policy(workdir),                                   # load_policy
+                  lambda: closed_loop.run(config, workdir),                          # evaluate
+                  lambda: bc.run(config, workdir),                                   # train_policy (resume)
+                  lambda: bc.train(config, workdir, cache.build(config, workdir, _toy_encoder("toy-v2")))):
+    with pytest.raises(UserError) as e:
+      attempt()
+    assert str(e.value).startswith(message) and "\n" not in str(e.value)
+  assert sorted(os.listdir(policy_dir)) == before
+
+
+# -------------------------------------------------------------------------------------------- videos and signals
+
+
+def test_videos_are_atomic_and_rebuilt_when_missing(tmp_path, monkeypatch):
+  import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  from test_eval import FakePolicy, FakePool, _config  # pylint: disable=import-outside-toplevel
+  from roboshape.eval import closed_loop  # pylint: disable=import-outside-toplevel
+  from roboshape.eval import videos  # pylint: disable=import-outside-toplevel
+  config = _config(levels=("train",), num_seeds=1, rollouts=2)
+  workdir, video_dir = str(tmp_path), str(tmp_path / "eval" / "videos")
+  pools = []
+  make_pool = lambda level: pools.append(FakePool()) or pools[-1]
+  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool, slot_videos=False)
+  assert sorted(os.listdir(video_dir)) == ["train_s1000_success.gif", "train_s1000_success.mp4"]
+  with open(tmp_path / "eval" / "results.json") as f:
+    results = json.load(f)
+  # A kill while writing leaves only a temporary file; the resumed evaluation deletes it and records the video again.
+  for name in os.listdir(video_dir):
+    os.remove(os.path.join(video_dir, name))
+  with open(os.path.join(video_dir, "train_s1000_success.tmp.mp4"), "wb") as f:
+    f.write(b"half a video")
+  pools.clear()
+  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool, slot_videos=False)
+  assert [p.reset_seeds for p in pools] == [[1000]]                   # only the rollout of the missing video
+  assert sorted(os.listdir(video_dir)) == ["train_s1000_success.gif", "train_s1000_success.mp4"]
+  with open(tmp_path / "eval" / "results.json") as f:
+    assert json.load(f) == results                                    # the logged results stand
+  pools.clear()
+  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool, slot_videos=False)
+  assert not pools                                                    # nothing missing: no simulator started
+  # A writer that fails half-way leaves neither the video nor its temporary file.
+  def fail(path, frames, **kwargs):
+    with open(path, "wb") as f:
+      f.write(b"partial")
+    raise OSError("disk full")
+  monkeypatch.setattr(imageio, "mimwrite", fail)
+  assert videos.write_video(np.zeros((2, 8, 8, 3), np.uint8), str(tmp_path / "v")) == []
+  assert not [n for n in os.listdir(tmp_path) if n.startswith("v.")]
+
+
+_INTERRUPTED_RUN = """
+import os, signal, sys, time
+signal.signal(signal.SIGINT, signal.default_int_handler)   # as started from a terminal (not a background job)
+sys.path.insert(0, {root!r})
+import jax.numpy as jnp
+from absl import logging
+from ml_collections import config_flags
+from roboshape import cli
+from roboshape.train.checkpoint import Checkpointer
+config_flags.DEFINE_config_file("config", None, "")
+
+def main(argv):
+  logging.set_verbosity(logging.WARNING)   # as launch.py
+  with Checkpointer({ckpt!r}, keep=2) as ckpt:
+    state = dict(w=jnp.ones((1 << 21,)))
+    for step in range(1, 10**6):
+      ckpt.save(step, state)            # asynchronous: a write is in flight when the signal comes
+      time.sleep(0.05)
+
+cli.exit_process(cli.run_app(main, [sys.argv[0], "--config={root}/configs/push_state.py:tiny"]))
+"""
+
+
+@pytest.mark.parametrize("signum,code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_an_interrupt_is_one_line_and_a_clean_exit(tmp_path, signum, code):
+  import signal  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  import time  # pylint: disable=import-outside-toplevel
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  ckpt = str(tmp_path / "checkpoints")
+  script = _INTERRUPTED_RUN.format(root=root, ckpt=ckpt)
+  proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+  deadline = time.time() + 60
+  while time.time() < deadline and not (os.path.isdir(ckpt) and len([n for n in os.listdir(ckpt)
+                                                                      if n.isdigit()]) >= 2):
+    time.sleep(0.05)
+  proc.send_signal(getattr(signal, signum))
+  _, err = proc.communicate(timeout=60)
+  assert proc.returncode == code, err[-3000:]
+  assert "Traceback" not in err and err.strip().splitlines()[-1] == (
+      "roboshape: interrupted; run the same command to resume"), err[-3000:]
+  from roboshape.train.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  with Checkpointer(ckpt) as resumed:                                   # what was saved restores, at its last step
+    latest = resumed.latest_step()
+    assert resumed.restore_latest(dict(w=jnp.zeros((1 << 21,))))[1] == latest
