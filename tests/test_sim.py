@@ -11,8 +11,8 @@ from roboshape.cli import UserError
 from roboshape.sim import EnvSpec, SimPool, SimWorkerError, check_seeds
 
 RESOLUTION = 32
-EPISODE_KEYS = {"task", "level", "seed", "success", "env_version", "terminated", "image", "segmentation", "action",
-                "reward"}
+EPISODE_KEYS = {"task", "level", "seed", "success", "env_version", "terminated", "image", "segmentation", "state",
+                "action", "reward"}
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +65,7 @@ def test_collected_episodes_follow_the_contract(pool, episodes):
     assert e["success"] and e["terminated"]  # the expert solves these seeds
     assert e["image"].dtype == np.uint8 and e["image"].shape == (steps + 1, RESOLUTION, RESOLUTION, 3)
     assert e["segmentation"].dtype == np.uint8 and e["segmentation"].shape == (steps + 1, RESOLUTION, RESOLUTION)
+    assert e["state"].dtype == np.float32 and e["state"].shape == (steps + 1, 65)
     assert e["action"].dtype == np.float32 and e["action"].shape == (steps, 7)
     assert np.all(np.abs(e["action"]) <= 1.0)
     assert e["reward"].dtype == np.float32 and e["reward"].shape == (steps,) and e["reward"][-1] == 1.0
