@@ -10,6 +10,7 @@ import os
 import time
 
 from roboshape import config_check
+from roboshape import data
 from roboshape import encoders
 from roboshape import fileio
 from roboshape.cli import UserError
@@ -86,6 +87,17 @@ def check_workdir(config, workdir: str) -> None:
   (or a path where one can be made) this process can write in, without the config.json of another run."""
   _check_writable(workdir)
   _check_same_run(config, workdir)
+  _check_dataset(config, workdir)
+
+
+def _check_dataset(config, workdir: str) -> None:
+  """A run that collects must not find a dataset of another config where it would collect (the collect stage
+  would refuse it, after config.json had been rewritten). Imports the collect stage (TensorFlow) only when a
+  dataset folder exists."""
+  if "collect" not in config.stages or not os.path.isdir(data.data_root(config, workdir)):
+    return
+  from roboshape.data import collect  # pylint: disable=import-outside-toplevel
+  collect.check_existing(config, workdir)
 
 
 def load_config(workdir: str):

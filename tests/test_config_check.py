@@ -128,6 +128,27 @@ def test_a_workdir_of_another_run_is_refused_and_kept_byte_identical(tmp_path):
   assert _snapshot(workdir) == before
 
 
+def test_a_dataset_of_another_config_in_the_workdir_is_refused_before_config_json(tmp_path):
+  from conftest import _synthetic_episode  # pylint: disable=import-outside-toplevel
+  from roboshape import data  # pylint: disable=import-outside-toplevel
+  from roboshape.data import collect, rlds  # pylint: disable=import-outside-toplevel
+  # The workdir of a run of 3 train episodes (config.json and dataset); this config, of the same task, encoder
+  # and variant, asks for 4.
+  config = common.get_config("pick", "savi", "tiny")
+  earlier = common.get_config("pick", "savi", "tiny")
+  earlier.data.train_episodes = 3
+  workdir = str(tmp_path / "pick_savi")
+  stages.save_config(earlier, workdir)
+  summary = dict(collect.config_summary(earlier), resolution=16)
+  rlds.write_dataset(data.dataset_path(config, workdir),
+                     {"train": [_synthetic_episode(s, task="pick", state=True) for s in range(3)],
+                      "val": [_synthetic_episode(1_000_000, task="pick", state=True)]}, summary)
+  before = _snapshot(workdir)
+  with pytest.raises(UserError, match="holds a dataset of another config .*train_episodes: 3 in the dataset"):
+    stages.run(config, workdir)
+  assert _snapshot(workdir) == before       # config.json included: nothing was rewritten
+
+
 def test_the_same_run_resumed_with_other_settings_rewrites_its_config(tmp_path):
   workdir = str(tmp_path / "pick_savi")
   stages.save_config(common.get_config("pick", "savi", "tiny"), workdir)

@@ -313,12 +313,18 @@ def _print_report(path: str, report: Mapping[str, Any]) -> None:
   print(f"[collect] dataset complete: {path}", flush=True)
 
 
+def check_existing(config, workdir: str):
+  """The stored state of the dataset this config would collect (None if none); UserError when the workdir's data
+  folder holds a dataset of another task, or the dataset there was made with another config."""
+  _check_workdir_task(config, workdir)
+  return check_compatible(data_lib.dataset_path(config, workdir), config_summary(config))
+
+
 def run(config, workdir: str) -> None:
   """The collect stage: the dataset of config.task at `roboshape.data.dataset_path(config, workdir)`."""
   path = data_lib.dataset_path(config, workdir)
-  _check_workdir_task(config, workdir)
   summary = config_summary(config)
-  state = check_compatible(path, summary)
+  state = check_existing(config, workdir)
   if state is not None and state["complete"] and not rlds.shard_problems(path, state):
     _print_report(path, {"already_complete": True})
     return
