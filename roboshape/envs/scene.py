@@ -299,17 +299,13 @@ class RoboShapeEnv(BaseEnv):
     """The privileged state float32 [N, envs.state.DIM] (layout in roboshape/envs/state.py): what the experts read,
     plus the arm's joints and each distractor's position and size."""
     s = self.privileged_state()
-    distractors = []
-    for draw, actors in zip(self.draws, self.distractors):
-      distractors.append([list(actor.pose.p[0].cpu().numpy()) + [size] for actor, size in zip(actors, draw.sizes)])
-    k = max(1, max(len(d) for d in distractors))
+    k = max(1, max(len(d) for d in self.distractors))
     rows = np.zeros((self.num_envs, k, 4), np.float32)
-    for i, d in enumerate(distractors):
-      if d:
-        rows[i, :len(d)] = d
     present = np.zeros((self.num_envs, k), bool)
-    for i, d in enumerate(distractors):
-      present[i, :len(d)] = True
+    for i, (draw, actors) in enumerate(zip(self.draws, self.distractors)):
+      for j, (actor, size) in enumerate(zip(actors, draw.sizes)):
+        rows[i, j] = list(actor.pose.p[0].cpu().numpy()) + [size]
+        present[i, j] = True
     return state_lib.pack(s["tcp_p"].cpu().numpy(), s["tcp_q"].cpu().numpy(), s["gripper"].cpu().numpy(),
                           self.agent.robot.get_qpos()[:, :7].cpu().numpy(), s["cube_p"].cpu().numpy(),
                           s["cube_q"].cpu().numpy(), s["goal_p"].cpu().numpy(), rows, present)

@@ -7,7 +7,7 @@ Positions are metres in the world frame (robot base at x = -0.615), quaternions 
 import numpy as np
 
 MAX_DISTRACTORS = 8   # EnvSpec refuses more; the distractor rows are padded to this count
-# (name, width), in order; the description printed in the dataset and the README come from here.
+# (name, width, description), in order; the dataset's feature doc and the README's table come from here.
 FIELDS = (
     ("tcp_pos", 3, "tool centre point position"),
     ("tcp_quat", 4, "tool centre point orientation (wxyz)"),
