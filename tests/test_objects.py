@@ -30,7 +30,7 @@ def _frame():
 
 def _random_frames(rng, batch, res=8):
   image = rng.integers(0, 256, (batch, res, res, 3), dtype=np.uint8)
-  seg = rng.integers(0, 9, (batch, res, res)).astype(np.uint8)            # ids 9..12 absent
+  seg = rng.integers(0, 9, (batch, res, res)).astype(np.uint8)            # ids 9..13 absent
   depth = rng.integers(300, 3000, (batch, res, res)).astype(np.uint16)
   return image, seg, depth
 
@@ -38,7 +38,7 @@ def _random_frames(rng, batch, res=8):
 def test_tokens_of_a_hand_made_frame():
   image, seg, depth = _frame()
   tokens = np.asarray(objects.tokens(image[None], seg[None], depth[None]))[0]
-  assert tokens.shape == (K, D) == (13, 12) and tokens.dtype == np.float32
+  assert tokens.shape == (K, D) == (14, 12) and tokens.dtype == np.float32
   cuts = objects.slices()
   cube = tokens[3]
   # Pixel centres along a side of 4 are at -0.75, -0.25, 0.25, 0.75; the cube's rows are (0, 0, 1), cols (1, 2, 1).

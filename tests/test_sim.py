@@ -8,6 +8,7 @@ import pytest
 
 from configs import common
 from roboshape.cli import UserError
+from roboshape.envs import ids
 from roboshape.sim import EnvSpec, SimPool, SimWorkerError, check_seeds
 
 RESOLUTION = 32
@@ -69,7 +70,11 @@ def test_collected_episodes_follow_the_contract(pool, episodes):
     assert e["action"].dtype == np.float32 and e["action"].shape == (steps, 7)
     assert np.all(np.abs(e["action"]) <= 1.0)
     assert e["reward"].dtype == np.float32 and e["reward"].shape == (steps,) and e["reward"][-1] == 1.0
-    assert {1, 2, 3, 4} <= set(np.unique(e["segmentation"][0]).tolist())
+    assert {1, 2, 3, 4, ids.HAND} <= set(np.unique(e["segmentation"][0]).tolist())
+    # The hand is its own object: it moves from where it starts to the bin, and FG-ARI's view merges it into the arm.
+    first, last = (np.argwhere(s == ids.HAND).mean(0) for s in e["segmentation"][[0, -1]])
+    assert np.abs(first - last).max() > 3
+    assert ids.HAND not in ids.robot_as_one(e["segmentation"]) and ids.ROBOT in ids.robot_as_one(e["segmentation"])
     assert set(e["action"][:, 6].tolist()) == {-1.0, 1.0}  # the gripper closes and opens again
 
 

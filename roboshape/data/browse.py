@@ -15,17 +15,9 @@ from typing import Dict
 import numpy as np
 
 from roboshape.cli import UserError
+from roboshape.envs import ids
 
-# Colours of the segmentation ids: 0 floor, 1 table, 2 robot, 3 red cube, 4 target/bin, 5+ distractors.
-_PALETTE = np.array([
-    [20, 20, 20], [120, 120, 120], [240, 240, 240], [230, 40, 40], [40, 200, 70],
-    [60, 110, 240], [240, 200, 40], [200, 80, 220], [40, 210, 210], [250, 140, 40], [150, 90, 50],
-], np.uint8)
-
-
-def colorize(segmentation: np.ndarray) -> np.ndarray:
-  """uint8 ids [..., H, W] -> uint8 RGB [..., H, W, 3] (ids beyond the palette wrap around)."""
-  return _PALETTE[segmentation.astype(np.int64) % len(_PALETTE)]
+colorize = ids.colorize   # one colour per segmentation id
 
 
 def frames_of(episode: Dict[str, np.ndarray], scale: int = 4, segmentation: bool = True) -> np.ndarray:

@@ -1,7 +1,7 @@
 """`objects`: ground-truth object tokens from the segmentation, one per object id (control: SAVi's upper bound).
 
-Each frame becomes NUM_IDS = 13 tokens, one per segmentation id 0..12 (0 floor/backdrop, 1 table, 2 robot, 3 the
-red cube, 4 the target or bin, 5 + i distractor i), each made only of what that id's mask shows: its area, where it
+Each frame becomes NUM_IDS = 14 tokens, one per segmentation id 0..13 (roboshape/envs/ids.py: 0 floor/backdrop,
+1 table, 2 robot arm, 3 the red cube, 4 the target or bin, 5 + i distractor i, 13 the robot's hand), each made only of what that id's mask shows: its area, where it
 is, how large it is, its mean colour and depth. A token does not hold its id, and the trunk gives a frame's tokens
 no order (roboshape/models/policy.py), so the policy sees an unordered set of objects, like SAVi's slots. An id
 that is absent from the frame (its mask is empty) gives an all-zero token, which the trunk masks out as a key.
@@ -24,8 +24,9 @@ depth the depth entry is 0.
 import hashlib
 
 from roboshape import encoders
+from roboshape.envs import ids
 
-NUM_IDS = 13   # segmentation ids 0..12: backdrop, table, robot, cube, target/bin, up to 8 distractors
+NUM_IDS = ids.NUM_IDS   # backdrop, table, robot arm, cube, target/bin, up to 8 distractors, the hand
 FIELDS = (("present", 1), ("area", 1), ("centroid", 2), ("std", 2), ("half_size", 2), ("colour", 3), ("depth", 1))
 DIM = sum(width for _, width in FIELDS)
 

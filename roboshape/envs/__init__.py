@@ -7,7 +7,7 @@ task classes), experts (batched oracle experts), contact_sheet (a PNG of every t
 from roboshape.envs.palettes import LEVEL_NAMES
 
 TASKS = ("push", "pick", "place")
-ENV_VERSION = "roboshape-envs-4"   # bumps whenever what a seed produces changes
+ENV_VERSION = "roboshape-envs-5"   # bumps whenever what a seed produces changes
 MIN_RESOLUTION, MAX_RESOLUTION = 16, 512
 
 

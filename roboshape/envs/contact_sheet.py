@@ -14,11 +14,8 @@ import sys
 import numpy as np
 
 from roboshape import envs
+from roboshape.envs import ids
 
-# Display colors of the segmentation ids: backdrop, table, robot, cube, goal, distractors 0..7.
-SEG_COLORS = np.array([[0, 0, 0], [120, 120, 120], [230, 230, 230], [255, 0, 0], [0, 200, 0], [255, 160, 0],
-                       [0, 120, 255], [255, 0, 255], [0, 255, 255], [160, 80, 0], [128, 0, 255], [255, 255, 0],
-                       [0, 128, 128]], np.uint8)
 
 
 def render_frames(tasks, levels, seeds, resolution: int, segmentation: bool):
@@ -33,7 +30,7 @@ def render_frames(tasks, levels, seeds, resolution: int, segmentation: bool):
         rgb, seg = env.unwrapped.frames(obs)
         row.append(rgb[0])
         if segmentation:
-          row.append(SEG_COLORS[np.minimum(seg[0], len(SEG_COLORS) - 1)])
+          row.append(ids.colorize(seg[0]))
       env.close()
       frames[(task, level)] = row
       print(f"rendered {task} / {level}", flush=True)

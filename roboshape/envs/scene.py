@@ -21,11 +21,10 @@ from mani_skill.utils import sapien_utils
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
+from roboshape.envs import ids
 from roboshape.envs import palettes
 from roboshape.envs import state as state_lib
 
-# Object ids of the segmentation maps (contract A).
-SEG_BACKDROP, SEG_TABLE, SEG_ROBOT, SEG_CUBE, SEG_GOAL, SEG_FIRST_DISTRACTOR = 0, 1, 2, 3, 4, 5
 
 CUBE_HALF_SIZE = 0.02
 TABLE_HEIGHT = 0.92
@@ -200,19 +199,19 @@ class RoboShapeEnv(BaseEnv):
     self.seg_lut = self._segmentation_lut()
 
   def _segmentation_lut(self) -> np.ndarray:
-    """uint8 [max_id + 1]: ManiSkill's per-scene segmentation id -> RoboShape object id (SEG_*)."""
+    """uint8 [max_id + 1]: ManiSkill's per-scene segmentation id -> RoboShape object id (roboshape/envs/ids.py)."""
     roles = {}
-    for actor, role in ((self.table, SEG_TABLE), (self.backdrop, SEG_BACKDROP), (self.cube, SEG_CUBE),
-                        (self.goal, SEG_GOAL)):
+    for actor, role in ((self.table, ids.TABLE), (self.backdrop, ids.BACKDROP), (self.cube, ids.CUBE),
+                        (self.goal, ids.GOAL)):
       if actor is not None:
         for obj in actor._objs:  # pylint: disable=protected-access
           roles[obj.per_scene_id] = role
     for actors in self.distractors:
       for j, actor in enumerate(actors):
-        roles[actor._objs[0].per_scene_id] = SEG_FIRST_DISTRACTOR + j  # pylint: disable=protected-access
+        roles[actor._objs[0].per_scene_id] = ids.FIRST_DISTRACTOR + j  # pylint: disable=protected-access
     for link in self.agent.robot.links:
       for obj in link._objs:  # pylint: disable=protected-access
-        roles[obj.entity.per_scene_id] = SEG_ROBOT
+        roles[obj.entity.per_scene_id] = ids.HAND if link.name in ids.HAND_LINKS else ids.ROBOT
     lut = np.zeros(max(roles) + 1, np.uint8)
     for key, role in roles.items():
       lut[key] = role

@@ -32,6 +32,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from roboshape.cli import UserError
+from roboshape.envs import ids
 from roboshape.eval import decomposition
 from roboshape.models import savi
 from roboshape.models.encoder import FrozenEncoder
@@ -210,7 +211,7 @@ def evaluate(comp: _SaviCompiled, params, episodes: Sequence[Dict[str, np.ndarra
   for i, episode in enumerate(episodes):
     video = episode["image"][:eval_config.frames]
     out = jax.device_get(comp.eval_video(params, video[None]))
-    seg = episode["segmentation"][:eval_config.frames]
+    seg = ids.robot_as_one(episode["segmentation"][:eval_config.frames])   # the robot is one object
     masks = decomposition.upsample_masks(out["masks"][0], pool)         # at the segmentation's resolution
     aris.append(decomposition.fg_ari(seg, masks, eval_config.background_ids))
     frame_aris.extend(decomposition.fg_ari(seg[t:t + 1], masks[t:t + 1], eval_config.background_ids)
