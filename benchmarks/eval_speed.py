@@ -27,20 +27,21 @@ from roboshape.eval import closed_loop  # pylint: disable=wrong-import-position
 
 
 def random_savi_policy(config):
-  """A `Policy` (contract D) over a randomly initialised SAVi encoder, with the config's architectures."""
+  """A `Policy` (models/policy.py) over a randomly initialised SAVi encoder, with the config's architectures."""
   # pylint: disable=import-outside-toplevel
   import functools
   import jax.numpy as jnp
   from roboshape.models import policy as policy_lib
   from roboshape.models.encoder import FrozenEncoder
   from roboshape.train import bc
+  from roboshape.models import savi
   from roboshape.train import pretrain
   comp = pretrain.compiled(config)
   r = config.env.resolution
   params = comp.init_state(jax.random.key(0), (1, config.savi.train.clip_length, r, r, 3))["params"]
-  init = comp.initial_slots(params, 1)[0]
+  init = savi.initial_slots(comp.model, params, 1)[0]
   encoder = FrozenEncoder(
-      name="savi", params=params, step=functools.partial(pretrain._frozen_step, comp.model),  # pylint: disable=protected-access
+      name="savi", params=params, step=functools.partial(savi.frozen_step, comp.model),
       init_state=lambda b: jnp.broadcast_to(init, (b, *init.shape)), num_tokens=comp.model.num_slots,
       token_dim=comp.model.slot_size, identity="savi:random")
   net = policy_lib.net_from_config(config.policy)

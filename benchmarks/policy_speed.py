@@ -33,6 +33,7 @@ from roboshape.models import policy as policy_lib  # pylint: disable=wrong-impor
 from roboshape.models.encoder import FrozenEncoder  # pylint: disable=wrong-import-position
 from roboshape.train import bc  # pylint: disable=wrong-import-position
 from roboshape.train import cache  # pylint: disable=wrong-import-position
+from roboshape.models import savi  # pylint: disable=wrong-import-position
 from roboshape.train import pretrain  # pylint: disable=wrong-import-position
 
 
@@ -40,9 +41,9 @@ def random_savi(config) -> FrozenEncoder:
   comp = pretrain.compiled(config)
   r = config.env.resolution
   params = comp.init_state(jax.random.key(0), (1, config.savi.train.clip_length, r, r, 3))["params"]
-  init = comp.initial_slots(params, 1)[0]
+  init = savi.initial_slots(comp.model, params, 1)[0]
   return FrozenEncoder(
-      name="savi", params=params, step=functools.partial(pretrain._frozen_step, comp.model),  # pylint: disable=protected-access
+      name="savi", params=params, step=functools.partial(savi.frozen_step, comp.model),
       init_state=lambda b: jnp.broadcast_to(init, (b, *init.shape)), num_tokens=comp.model.num_slots,
       token_dim=comp.model.slot_size, identity="savi:random")
 

@@ -18,12 +18,14 @@ import ast
 import ml_collections
 
 from roboshape import encoders
+from roboshape import envs
+from roboshape import rundir
 
-TASKS = ("push", "pick", "place")
+TASKS = envs.TASKS
 VARIANTS = ("paper", "small", "tiny")
 MODIFIERS = {"chunk": 8}   # variant suffix -> policy.chunk
-LEVELS = ("train", "L1", "L2", "L3")
-STAGES = ("collect", "pretrain", "cache", "train_policy", "evaluate", "report")
+LEVELS = envs.LEVEL_NAMES  # the training distribution and the three shifts (roboshape/envs/palettes.py)
+STAGES = rundir.STAGES     # every stage, in the order a run takes them
 
 
 def _pick(variant: str, paper, small, tiny):
@@ -88,10 +90,9 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
                                                    # (+ 2 spares in paper and tiny)
       slot_size=_pick(variant, 128, 128, 32),
       pool=_pick(variant, 1, 2, 1),  # frames are average-pooled by this factor before SAVi sees them
-      # first frame's slots: "shared" (one learned mean + noise), "per_slot" (K means + noise), "queries" (K, no noise)
+      # first frame's slots: "shared" (one learned mean + noise) or "queries" (K learned vectors, no noise)
       init_mean="queries" if variant == "small" else "shared",
       num_iterations=_pick(variant, 2, 3, 2),  # slot-attention iterations per frame
-      first_frame_iterations=0,  # on the first frame, from the initial slots (0: num_iterations)
       slot_gradient="last" if variant == "small" else "full",  # "full": backprop through every iteration; "last":
                                                                # only through the last (first-order implicit gradient)
       slot_mlp_size=_pick(variant, 256, 256, 64),
@@ -113,10 +114,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           kernel_size=5 if paper else 3,
           strides=_pick(variant, (2, 2, 2, 1), (2, 2), (2, 2, 2)),
           rgb="slot" if variant == "small" else "spatial",  # "spatial": RGB per pixel from the CNN; "slot": one
-                                                             # colour per slot (a Dense of the slot), masks spatial;
-                                                             # "slot_shaded": that colour x a per-pixel gain (0, 2);
-                                                             # "slot_palette": one of 2 colours per slot, per pixel;
-                                                             # "slot_dark": the colour or a darker shade of it
+                                                             # colour per slot (a Dense of the slot), masks spatial
           upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
           # grid position embedding: "coords" (a linear map of the pixel coordinates) or "learned" (a free vector
           # per grid cell; with kernel_size=1 and strides all 1 the decoder is a per-pixel MLP)
@@ -129,9 +127,8 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           learning_rate=_pick(variant, 2e-4, 4e-4, 1e-3),
           warmup_steps=_pick(variant, 2500, 200, 2),
           clip_norm=0.05,         # global gradient norm
-          # > 0: also reconstruct depth (metres), weighted so; needs env.depth=True data
+          # > 0: also reconstruct depth (metres), weighted so against the RGB MSE; needs env.depth=True data
           depth_weight=_pick(variant, 0.0, 0.25, 0.0),
-          rgb_weight=1.0,         # weight of the RGB reconstruction MSE (0 with depth_weight > 0: depth alone)
           checkpoint_every=_pick(variant, 1000, 250, 10),
           keep_checkpoints=3,
           log_every=_pick(variant, 50, 10, 1),
@@ -149,7 +146,7 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
 def ae_config(variant: str) -> ml_collections.ConfigDict:
   """The `ae` encoder, a frame autoencoder (roboshape/models/ae.py, roboshape/train/pretrain_ae.py).
 
-  Only what SAVi has no field for: every training field (data, steps, batch, schedule, clipping, loss weights,
+  Only what SAVi has no field for: every training field (data, steps, batch, schedule, clipping, depth weight,
   cadence) and the encoder, decoder and pool are read from the savi section, so the pretraining is equal by
   construction.
   """

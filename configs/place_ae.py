@@ -1,7 +1,10 @@
 """Control: task 'place' with the AE encoder (a frame autoencoder pretrained on the task's own demos exactly as SAVi
 is: the same frames, steps, batches, schedule and loss, read from config.savi; frozen, one token per frame).
 
-Command:  python launch.py --config=configs/place_ae.py[:paper|small|tiny] --workdir=runs/place_ae
+Command:  python launch.py --config=configs/place_ae.py:small --workdir=runs/place_ae
+          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
+Runtime: not yet measured.
+Result: not yet measured.
 Its pretrain stage is roboshape/train/pretrain_ae.py; ae.latent_size sets the token width (0: savi.slot_size).
 """
 from configs import common

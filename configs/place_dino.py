@@ -1,7 +1,10 @@
-"""Task 'place' with the DINO ViT (official checkpoint, frozen) encoder and the transformer BC policy.
+"""Task 'place' with the DINO ViT encoder (official checkpoint, frozen) and the transformer BC policy.
 
-Command:  python launch.py --config=configs/place_dino.py[:paper|small|tiny] --workdir=runs/place_dino
-Runtime and expected result: see the table in README.md (filled from measured runs).
+Command:  python launch.py --config=configs/place_dino.py:small --workdir=runs/place_dino
+          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
+Runtime: not yet measured.
+Result: not yet measured (the official weights cannot be downloaded on the 2-core CPU machine).
+Needs the official weights (README.md, "Weights of the R3M and DINO baselines"). No pretrain stage.
 """
 from configs import common
 

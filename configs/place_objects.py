@@ -1,6 +1,9 @@
 """Control: task 'place' with ground-truth object tokens (one per segmentation id) as the encoder, SAVi's upper bound.
 
-Command:  python launch.py --config=configs/place_objects.py[:paper|small|tiny] --workdir=runs/place_objects
+Command:  python launch.py --config=configs/place_objects.py:small --workdir=runs/place_objects
+          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
+Runtime: not yet measured.
+Result: not yet measured.
 Reads observation/image and observation/segmentation (every dataset stores them), and observation/depth too where
 env.depth is set (the :small). No pretraining. Token layout: roboshape/encoders/objects.py.
 """

@@ -1,7 +1,9 @@
-"""Task 'place' with the SAVi (pretrained on the task's own demos, frozen) encoder and the transformer BC policy.
+"""Task 'place' with the SAVi encoder (pretrained on the task's own demos, frozen) and the transformer BC policy.
 
-Command:  python launch.py --config=configs/place_savi.py[:paper|small|tiny] --workdir=runs/place_savi
-Runtime and expected result: see the table in README.md (filled from measured runs).
+Command:  python launch.py --config=configs/place_savi.py:small --workdir=runs/place_savi
+          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
+Runtime: not yet measured.
+Result: not yet measured.
 """
 from configs import common
 

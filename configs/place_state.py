@@ -1,8 +1,11 @@
 """Control: task 'place' with the privileged simulator state as the encoder (one token per step), the upper bound.
 
-Command:  python launch.py --config=configs/place_state.py[:paper|small|tiny] --workdir=runs/place_state
-Needs a dataset that stores observation/state (every dataset collected since roboshape-envs-2). No pretraining,
-no rendering needed by the encoder. Runtime and measured result: results/small/place_state/README.md.
+Command:  python launch.py --config=configs/place_state.py:small --workdir=runs/place_state
+          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
+Runtime: not yet measured.
+Result: not yet measured.
+Needs a dataset that stores observation/state (every dataset collected since roboshape-envs-2). No pretraining, no
+rendering needed by the encoder.
 """
 from configs import common
 

@@ -6,9 +6,8 @@ Command:  python launch.py --config=configs/reproduce.py[:tiny|small|paper] --wo
 
 Variants:
   tiny:  push x SAVi at the tiny scale (4 demos, 20 training steps, 1 seed x 2 rollouts per level): checks the
-         whole pipeline end to end. Measured: 17.5 min wall on the 2-core CPU machine while it was shared (load
-         average ~12; collect 80 s, pretrain 375 s, cache 14 s, train_policy 46 s, evaluate 510 s). Its success
-         rates mean nothing (0.00 everywhere: 20 training steps).
+         whole pipeline end to end. Measured: 1m39s (`make demo`) on the 2-core CPU machine once set up, with
+         nothing else running. Its success rates mean nothing (20 training steps).
   small: push x {SAVi, R3M, DINO} at the small scale (200 demos, 3 seeds x 20 rollouts per level): hours on a
          2-core CPU. Baselines whose weights are absent (config.baselines.*.path) are skipped, said in the report.
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.

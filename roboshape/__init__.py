@@ -4,14 +4,16 @@ Notebook entry points (imports are lazy, so `import roboshape` is cheap and pull
 
   enc = roboshape.load_encoder(workdir)     # the run's frozen encoder (SAVi from its checkpoint, or a baseline)
   policy = roboshape.load_policy(workdir)   # policy.reset(); action = policy.act(frame)
+
+Both restore parameters only (no optimizer state is read or built). The run folder's layout is roboshape/rundir.py.
 """
 
 
 def load_encoder(workdir: str):
   """The frozen encoder of the run in `workdir`, as a `roboshape.models.encoder.FrozenEncoder`."""
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
-  from roboshape import stages  # pylint: disable=import-outside-toplevel
-  return encoders.build_encoder(stages.load_config(workdir), workdir)
+  from roboshape import rundir  # pylint: disable=import-outside-toplevel
+  return encoders.build_encoder(rundir.load_config(workdir), workdir)
 
 
 def load_policy(workdir: str):

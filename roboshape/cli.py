@@ -1,7 +1,7 @@
 """Command-line plumbing shared by launch.py and the tools: one-line errors instead of tracebacks.
 
-`UserError` is what roboshape raises for bad input (a missing file, an unknown task, a dataset of another config):
-the message says what to do, and the command exits with status 2 and no traceback.
+A `roboshape.errors.UserError` (bad input: a missing file, an unknown task, a dataset of another config) says what
+to do; the command prints it as one line and exits with status 2, no traceback.
 
 Ctrl-C (SIGINT) and SIGTERM end a run with one line, `roboshape: interrupted; run the same command to resume`, and
 exit status 130 / 143 (`run_app`, then `exit_process`): the signal raises in the main thread, so each stage's
@@ -19,9 +19,7 @@ from typing import Callable, Sequence
 from absl import app
 from absl import flags
 
-
-class UserError(Exception):
-  """Bad input from the person running roboshape; the message says what to do."""
+from roboshape.errors import UserError
 
 
 INTERRUPTED = "interrupted; run the same command to resume"

@@ -1,6 +1,6 @@
 """One check of a whole experiment config before any stage runs: bad values fail in seconds, not hours later.
 
-  config_check.check(config)     # raises roboshape.cli.UserError naming the first bad field and what to do
+  config_check.check(config)     # raises roboshape.errors.UserError naming the first bad field and what to do
 
 Every stage used to check its own fields when it started, so a bad `eval.levels` failed after collect, pretrain,
 cache and train_policy had run. `check` covers the fields of every stage up front: types and ranges (counts are
@@ -14,7 +14,7 @@ Sections only one encoder reads (savi, ae, baselines.*) are checked for that enc
 encoder needs (e.g. SAVi's decoder for env.resolution=32) never refuses an R3M run. Checks that depend on the
 machine or on files (the device count, checkpoints, datasets) stay in the stages. Importing this module is cheap;
 the SAVi and baseline checks import their model modules (JAX, Flax) only for those encoders, and never start a
-JAX backend.
+JAX backend. Defaults are configs/common.py's alone: every field checked here is required.
 """
 import math
 import numbers
@@ -22,10 +22,10 @@ from typing import Any, Iterable, Sequence, Tuple
 
 from roboshape import encoders
 from roboshape import envs
-from roboshape.cli import UserError
+from roboshape import rundir
+from roboshape.errors import UserError
 from roboshape.sim import spec as spec_lib
 
-_REQUIRED = object()
 # Sections read only by some encoders: checked when config.encoder is one of them.
 _ENCODER_SECTIONS = {
     "savi": ("savi",),
@@ -33,11 +33,10 @@ _ENCODER_SECTIONS = {
     "r3m": ("baselines.r3m",),
     "dino": ("baselines.dino",),
 }
-_UPSAMPLINGS = ("subpixel", "transpose")      # roboshape.models.savi.Upsample
 _POLICY_ACTIONS = ("mean", "sample")          # roboshape.models.policy.ControlSpec.action
 _R3M_MIN_SIDE, _DINO_MIN_SIDE = 32, 16        # roboshape/baselines/r3m.py, dino.py: the smallest input side
 
-# (field, minimum, what it is): ints >= minimum. A field with a default after it may be absent from the config.
+# (field, minimum, what it is): ints >= minimum.
 _INTS = {
     "run": (
         ("seed", 0, "the seed of initialisation, data order and sampling"),
@@ -79,9 +78,8 @@ _INTS = {
     "savi": (
         ("savi.num_slots", 1, "slots per frame"),
         ("savi.slot_size", 1, "the width of a slot, a multiple of savi.predictor.num_heads"),
-        ("savi.pool", 1, "the factor frames are average-pooled by, a divisor of env.resolution", 1),
+        ("savi.pool", 1, "the factor frames are average-pooled by, a divisor of env.resolution"),
         ("savi.num_iterations", 1, "slot-attention iterations per frame"),
-        ("savi.first_frame_iterations", 0, "iterations on the first frame; 0: savi.num_iterations", 0),
         ("savi.slot_mlp_size", 1, "the slot MLP's width"),
         ("savi.encoder.kernel_size", 1, "the CNN's kernel side"),
         ("savi.encoder.mlp_size", 1, "the encoder MLP's width"),
@@ -103,13 +101,13 @@ _INTS = {
         ("savi.eval.figure_frames", 0, "frames in each validation figure"),
     ),
     "ae": (
-        ("ae.latent_size", 0, "the AE's token width; 0: savi.slot_size", 0),
+        ("ae.latent_size", 0, "the AE's token width; 0: savi.slot_size"),
     ),
     "baselines.r3m": (
-        ("baselines.r3m.input_size", 0, "the side frames are resized to; 0: their own", 224),
+        ("baselines.r3m.input_size", 0, "the side frames are resized to; 0: their own"),
     ),
     "baselines.dino": (
-        ("baselines.dino.input_size", 0, "the side frames are resized to; 0: their own", 224),
+        ("baselines.dino.input_size", 0, "the side frames are resized to; 0: their own"),
     ),
 }
 
@@ -134,6 +132,7 @@ _NUMBERS = {
     "savi": (
         ("savi.train.learning_rate", 0.0, False, None, "the peak learning rate"),
         ("savi.train.clip_norm", 0.0, False, None, "the global gradient-norm clip"),
+        ("savi.train.depth_weight", 0.0, True, None, "the weight of the depth MSE; 0: no depth target"),
     ),
 }
 
@@ -142,15 +141,13 @@ _NUMBERS = {
 # Reading fields and the generic checks.
 
 
-def _value(config, path: str, default: Any = _REQUIRED) -> Any:
-  """config's field at dotted `path`; `default` where it is absent (a UserError when there is none)."""
+def _value(config, path: str) -> Any:
+  """config's field at dotted `path`; a UserError when it is absent."""
   node = config
   for key in path.split("."):
     if not hasattr(node, "keys") or key not in node:
-      if default is _REQUIRED:
-        raise UserError(f"the config has no field {path}; build configs with configs/common.py "
-                        "(e.g. configs/pick_savi.py) and override fields with --config.<field>=<value>.")
-      return default
+      raise UserError(f"the config has no field {path}; build configs with configs/common.py "
+                      "(e.g. configs/pick_savi.py) and override fields with --config.<field>=<value>.")
     node = node[key]
   return node
 
@@ -167,9 +164,9 @@ def _choices(values: Iterable[Any]) -> str:
   return ", ".join(str(v) for v in values)
 
 
-def check_int(config, path: str, low: int, what: str, default: Any = _REQUIRED) -> int:
+def check_int(config, path: str, low: int, what: str) -> int:
   """The int at `path`; a UserError unless it is an int >= low."""
-  value = _value(config, path, default)
+  value = _value(config, path)
   if not _is_int(value) or value < low:
     raise UserError(f"{path}={value!r}: use an int >= {low} ({what}).")
   return int(value)
@@ -188,9 +185,9 @@ def check_number(config, path: str, low: float, low_ok: bool, high, what: str) -
   return float(value)
 
 
-def check_choice(config, path: str, choices: Sequence[Any], what: str, default: Any = _REQUIRED) -> Any:
+def check_choice(config, path: str, choices: Sequence[Any], what: str) -> Any:
   """The value at `path`; a UserError unless it is one of `choices`."""
-  value = _value(config, path, default)
+  value = _value(config, path)
   if value not in tuple(choices):
     raise UserError(f"{path}={value!r}: use one of {_choices(choices)} ({what}).")
   return value
@@ -208,8 +205,8 @@ def check_ints(config, path: str, low: int, what: str, length: int = 0) -> Tuple
 
 
 def _check_tables(config, section: str) -> None:
-  for path, low, what, *default in _INTS.get(section, ()):
-    check_int(config, path, low, what, *default)
+  for path, low, what in _INTS.get(section, ()):
+    check_int(config, path, low, what)
   for path, low, low_ok, high, what in _NUMBERS.get(section, ()):
     check_number(config, path, low, low_ok, high, what)
 
@@ -219,16 +216,15 @@ def _check_tables(config, section: str) -> None:
 
 
 def _check_stages(config) -> Tuple[str, ...]:
-  """config.stages: a tuple of known stage names."""
-  from roboshape import stages as stages_lib  # pylint: disable=import-outside-toplevel
+  """config.stages: a tuple of known stage names (rundir.STAGES)."""
   names = _value(config, "stages")
   if isinstance(names, str) or not isinstance(names, (tuple, list)):
     raise UserError(f"stages={names!r}: use a tuple of stages, e.g. \"('collect', 'pretrain')\", of "
-                    f"{_choices(stages_lib.STAGE_MODULES)}.")
-  unknown = [s for s in names if s not in stages_lib.STAGE_MODULES]
+                    f"{_choices(rundir.STAGES)}.")
+  unknown = [s for s in names if s not in rundir.STAGES]
   if unknown:
     raise UserError(f"unknown stage(s) {_choices(unknown)} in stages; use some of "
-                    f"{_choices(stages_lib.STAGE_MODULES)}.")
+                    f"{_choices(rundir.STAGES)}.")
   return tuple(names)
 
 
@@ -249,7 +245,7 @@ def _check_env(config) -> None:
     raise UserError(f"env.resolution={resolution!r}: use an int in [{envs.MIN_RESOLUTION}, {envs.MAX_RESOLUTION}] "
                     "(the camera's side in pixels; 64 by default).")
   spec_lib.EnvSpec.from_config(config)
-  if not isinstance(_value(config, "env.depth", False), bool):
+  if not isinstance(_value(config, "env.depth"), bool):
     raise UserError(f"env.depth={config.env.depth!r}: use True or False (also store the camera's depth).")
 
 
@@ -279,9 +275,9 @@ def _check_eval(config) -> None:
   from roboshape.eval import closed_loop  # pylint: disable=import-outside-toplevel
   levels = _value(config, "eval.levels")
   if (isinstance(levels, str) or not isinstance(levels, (tuple, list)) or not levels
-      or any(l not in closed_loop.LEVELS for l in levels)):
+      or any(l not in envs.LEVEL_NAMES for l in levels)):
     raise UserError(f"eval.levels={levels!r}: use a non-empty tuple of the levels "
-                    f"{_choices(closed_loop.LEVELS)}, e.g. \"('train', 'L1')\".")
+                    f"{_choices(envs.LEVEL_NAMES)}, e.g. \"('train', 'L1')\".")
   _check_tables(config, "eval")
   ev = config.eval
   if ev.rollouts_per_seed > closed_loop.SEED_STRIDE:
@@ -294,45 +290,24 @@ def _check_eval(config) -> None:
 
 
 def _check_savi(config) -> None:
-  """SAVi's section (also the AE's training settings): ranges, choices, layer tuples, and its fit to the frames.
-
-  The same constraints as roboshape.train.pretrain.validate_config, without its device count (that starts a JAX
-  backend, which must not hold an accelerator before the collect stage; the pretrain stage checks it).
-  """
+  """SAVi's section (also the AE's training settings): ranges, layer tuples, then the model's own check of modes
+  and fit to the frames (roboshape.models.savi.check_config, which the pretrain stage runs too, with the device
+  count: that starts a JAX backend, which must not hold an accelerator before the collect stage)."""
   from roboshape.models import savi  # pylint: disable=import-outside-toplevel
   _check_tables(config, "savi")
   c = config.savi
-  for field, choices, default in (("init_mean", savi.INIT_MEANS, "shared"),
-                                  ("slot_gradient", savi.SLOT_GRADIENTS, "full"),
-                                  ("decoder.rgb", savi.DECODER_RGBS, "spatial"),
-                                  ("decoder.position", savi.DECODER_POSITIONS, "coords"),
-                                  ("decoder.upsampling", _UPSAMPLINGS, _REQUIRED)):
-    check_choice(config, f"savi.{field}", choices, "see configs/common.py", default)
   for part in ("encoder", "decoder"):
     features = check_ints(config, f"savi.{part}.features", 1, f"channels of each {part} layer")
     check_ints(config, f"savi.{part}.strides", 1, f"one stride per savi.{part}.features layer", len(features))
+  savi.check_config(c, config.env.resolution)
   if c.slot_size % c.predictor.num_heads:
     raise UserError(f"savi.predictor.num_heads={c.predictor.num_heads} does not divide savi.slot_size="
                     f"{c.slot_size}: use a divisor of the slot size.")
   if not isinstance(c.eval.background_ids, (tuple, list)) or not all(
       _is_int(i) and i >= 0 for i in c.eval.background_ids):
     raise UserError(f"savi.eval.background_ids={c.eval.background_ids!r}: use a tuple of segmentation ids >= 0.")
-  resolution, pool = config.env.resolution, savi.input_pool(c)
-  if resolution % pool:
-    raise UserError(f"savi.pool={pool} does not divide env.resolution={resolution}: use a divisor of it.")
-  out = savi.decoder_grid_size(c, resolution) * math.prod(c.decoder.strides)
-  if out != resolution // pool:
-    raise UserError(f"savi.decoder.grid_size={c.decoder.grid_size} with savi.decoder.strides="
-                    f"{tuple(c.decoder.strides)!r} makes {out}x{out} images, but SAVi models "
-                    f"{resolution // pool}x{resolution // pool} frames (env.resolution / savi.pool): set "
-                    "savi.decoder.grid_size=0 (automatic) or change savi.decoder.strides.")
-  rgb_weight, depth_weight = savi.loss_weights(c)
-  for name, weight in (("rgb_weight", rgb_weight), ("depth_weight", depth_weight)):
-    if not math.isfinite(weight) or weight < 0:
-      raise UserError(f"savi.train.{name}={weight!r}: use a number >= 0 (the loss weight).")
-  if rgb_weight + depth_weight <= 0:
-    raise UserError("savi.train.rgb_weight and savi.train.depth_weight are both 0: set one of them > 0.")
-  if depth_weight > 0 and not config.env.get("depth", False) and {"collect", "pretrain"} & set(config.stages):
+  depth_weight = savi.depth_weight(c)
+  if depth_weight > 0 and not config.env.depth and {"collect", "pretrain"} & set(config.stages):
     raise UserError(f"savi.train.depth_weight={depth_weight} needs depth in the dataset: set "
                     "--config.env.depth=True, or --config.savi.train.depth_weight=0.")
 
@@ -342,7 +317,7 @@ def _check_baseline(config, name: str, archs: Sequence[str], min_side: int) -> N
   section = f"baselines.{name}"
   check_choice(config, f"{section}.arch", archs, f"the {name.upper()} network")
   _check_tables(config, section)
-  input_size = int(_value(config, f"{section}.input_size", 224))
+  input_size = int(_value(config, f"{section}.input_size"))
   side = input_size or config.env.resolution
   if side < min_side:
     raise UserError(f"{section}.input_size={input_size} gives {side}x{side} inputs; {name.upper()} needs at least "
@@ -392,13 +367,13 @@ def check(config) -> None:
   """Raises UserError, one line naming the field and what to do, for the first problem of `config`.
 
   A grid config (a `grid` field, configs/reproduce.py) is checked as its grid fields, then as each of its runs
-  (roboshape.stages.grid_configs).
+  (roboshape.grid.grid_configs).
   """
   if "grid" not in config:
     check_single(config)
     return
-  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  from roboshape import grid  # pylint: disable=import-outside-toplevel
   _check_grid(config)
   _check_stages(config)
-  for _, _, sub, _ in stages.grid_configs(config, ""):
+  for _, _, sub, _ in grid.grid_configs(config, ""):
     check_single(sub)

@@ -2,7 +2,9 @@
 
 Each stage is a module with `run(config, workdir)`; it is imported only when it runs, so a stage that renders never
 imports TensorFlow and a stage that trains never imports SAPIEN. Each stage resumes where a killed run stopped
-and skips work that is already done.
+and skips work that is already done. The pretrain stage is the encoder's own (roboshape.encoders.Kind.pretrain),
+run as `run(config, workdir, make_validation)` with the validation of the encoder's evaluator (Kind.evaluator, in
+roboshape/eval/): this is where training meets evaluation, so that train/ never imports eval/.
 """
 import importlib
 import json
@@ -10,10 +12,10 @@ import os
 import time
 
 from roboshape import config_check
-from roboshape import data
 from roboshape import encoders
-from roboshape import fileio
-from roboshape.cli import UserError
+from roboshape import rundir
+from roboshape.errors import UserError
+from roboshape.grid import grid_configs
 
 STAGE_MODULES = {
     "collect": "roboshape.data.collect",
@@ -27,17 +29,6 @@ STAGE_MODULES = {
 
 # The fields that make a workdir's config.json another run's: a run resumed or extended keeps them all.
 _RUN_FIELDS = ("task", "encoder", "variant")
-
-
-def save_config(config, workdir: str) -> str:
-  """Writes config.json into the workdir (atomically) and returns its path."""
-  path = os.path.join(workdir, "config.json")
-  try:
-    os.makedirs(workdir, exist_ok=True)
-    fileio.atomic_write_text(path, config.to_json_best_effort(indent=2, sort_keys=True))
-  except OSError as e:
-    raise UserError(f"cannot write {path} ({e.strerror or e}); give a --workdir you can write to.") from None
-  return path
 
 
 def _check_writable(workdir: str) -> None:
@@ -64,7 +55,7 @@ def _run_identity(config) -> dict:
 
 def _check_same_run(config, workdir: str) -> None:
   """Raises UserError when `workdir` already holds the config.json of another run (see `_run_identity`)."""
-  path = os.path.join(workdir, "config.json")
+  path = rundir.config_path(workdir)
   if not os.path.exists(path):
     return
   try:
@@ -94,42 +85,10 @@ def _check_dataset(config, workdir: str) -> None:
   """A run that collects must not find a dataset of another config where it would collect (the collect stage
   would refuse it, after config.json had been rewritten). Imports the collect stage (TensorFlow) only when a
   dataset folder exists."""
-  if "collect" not in config.stages or not os.path.isdir(data.data_root(config, workdir)):
+  if "collect" not in config.stages or not os.path.isdir(rundir.data_root(config, workdir)):
     return
   from roboshape.data import collect  # pylint: disable=import-outside-toplevel
   collect.check_existing(config, workdir)
-
-
-def load_config(workdir: str):
-  """The config a run saved in its workdir, as a ConfigDict."""
-  import ml_collections  # pylint: disable=import-outside-toplevel
-  path = os.path.join(workdir, "config.json")
-  if not os.path.exists(path):
-    raise UserError(f"{path} not found: is {workdir!r} the workdir of a `python launch.py` run?")
-  with open(path) as f:
-    return ml_collections.ConfigDict(json.load(f))
-
-
-def grid_configs(config, workdir: str):
-  """(task, encoder, config, workdir) of each run of a grid config, in the order the grid runs them.
-
-  A grid config (configs/reproduce.py) is an experiment config plus `grid.tasks` and `grid.encoders`; each run
-  is that config with its task and encoder set, in <workdir>/<task>_<encoder>/, reading the task's dataset from
-  <workdir>/data/<task> (shared by the task's runs; collected once). Runs of encoders with a pretraining stage (SAVi) come first within a task.
-  """
-  import ml_collections  # pylint: disable=import-outside-toplevel
-  base = config.to_dict()
-  base.pop("grid")
-  data_root = config.data.dir or os.path.join(workdir, "data")
-  order = sorted(config.grid.encoders, key=lambda e: not encoders.get(e).pretrain)
-  for task in config.grid.tasks:
-    for encoder in order:
-      sub = ml_collections.ConfigDict(base)
-      sub.task, sub.encoder, sub.name = task, encoder, f"{task}_{encoder}"
-      pretrains = encoders.get(encoder).pretrain
-      sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
-      sub.data.dir = os.path.join(data_root, task)
-      yield task, encoder, sub, os.path.join(workdir, f"{task}_{encoder}")
 
 
 def run_grid(config, workdir: str) -> None:
@@ -144,9 +103,9 @@ def run_grid(config, workdir: str) -> None:
   check_workdir(config, workdir)
   for _, _, sub, sub_dir in runs:
     check_workdir(sub, sub_dir)
-  save_config(config, workdir)
+  rundir.save_config(config, workdir)
   for task, encoder, sub, sub_dir in runs:
-    skipped = os.path.join(sub_dir, "SKIPPED.json")
+    skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
     print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
     try:
       run(sub, sub_dir)
@@ -164,6 +123,30 @@ def run_grid(config, workdir: str) -> None:
     importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
 
 
+def _import_stage(name: str, module_name: str):
+  """The module of stage `name`; a UserError when this version of roboshape lacks it."""
+  try:
+    return importlib.import_module(module_name)
+  except ModuleNotFoundError as e:
+    if e.name and e.name.startswith("roboshape"):
+      raise UserError(f"stage {name!r} is not implemented in this version of roboshape "
+                      f"({module_name} is missing); drop it with --config.stages.") from None
+    raise
+
+
+def stage_runner(name: str, config):
+  """The stage `name` of `config`, imported, as a function of the workdir: `run(config, workdir)` of its module;
+  for "pretrain" the encoder's pretrain module, given the `validation` of the encoder's evaluator module (none
+  for an encoder without one)."""
+  if name != "pretrain":
+    module = _import_stage(name, STAGE_MODULES[name])
+    return lambda workdir: module.run(config, workdir)
+  kind = encoders.get(config.encoder)
+  trainer = _import_stage(name, kind.pretrain)
+  make_validation = _import_stage(name, kind.evaluator).validation if kind.evaluator else None
+  return lambda workdir: trainer.run(config, workdir, make_validation)
+
+
 def run(config, workdir: str) -> None:
   """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`).
 
@@ -175,17 +158,10 @@ def run(config, workdir: str) -> None:
     return
   config_check.check(config)
   check_workdir(config, workdir)
-  save_config(config, workdir)
+  rundir.save_config(config, workdir)
   for name in config.stages:
-    module_name = encoders.get(config.encoder).pretrain if name == "pretrain" else STAGE_MODULES[name]
-    try:
-      module = importlib.import_module(module_name)
-    except ModuleNotFoundError as e:
-      if e.name and e.name.startswith("roboshape"):
-        raise UserError(f"stage {name!r} is not implemented in this version of roboshape "
-                        f"({module_name} is missing); drop it with --config.stages.") from None
-      raise
+    runner = stage_runner(name, config)
     print(f"[roboshape] stage {name} -> {workdir}", flush=True)
     start = time.time()
-    module.run(config, workdir)
+    runner(workdir)
     print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)

@@ -10,14 +10,17 @@ import pytest
 
 from configs import common
 from roboshape import encoders
+from roboshape import rundir
 from roboshape import stages
-from roboshape.cli import UserError
+from roboshape.checkpoint import Checkpointer
+from roboshape.encoders import ae as ae_encoder
+from roboshape.errors import UserError
+from roboshape.eval import reconstruction
 from roboshape.models import ae
 from roboshape.train import cache
 from roboshape.train import history as history_lib
 from roboshape.train import pretrain
 from roboshape.train import pretrain_ae
-from roboshape.train.checkpoint import Checkpointer
 
 LATENT = 16
 STEPS = 4
@@ -85,8 +88,9 @@ def straight(tmp_path_factory):
   """STEPS steps in one run, validated on two episodes, with its workdir."""
   config = tiny_config()
   workdir = str(tmp_path_factory.mktemp("ae_run"))
-  stages.save_config(config, workdir)
-  result = pretrain_ae.train(config, workdir, Source(), [{"image": clip(100)}, {"image": clip(101)}])
+  rundir.save_config(config, workdir)
+  result = pretrain_ae.train(config, workdir, Source(), [{"image": clip(100)}, {"image": clip(101)}],
+                             reconstruction.validation)
   return {"config": config, "workdir": workdir, "result": result}
 
 
@@ -120,18 +124,18 @@ def test_training_settings_are_savis_by_construction():
   ae_comp, savi_comp = pretrain_ae.compiled(config), pretrain.compiled(config)
   for step in (0, 1, 2, 3):
     assert float(ae_comp.schedule(step)) == float(savi_comp.schedule(step))
-  assert (ae_comp.rgb_weight, ae_comp.depth_weight) == (savi_comp.rgb_weight, savi_comp.depth_weight) == (1.0, 0.5)
+  assert ae_comp.depth_weight == savi_comp.depth_weight == 0.5
   assert ae_comp.model.input_pool == savi_comp.model.input_pool
   assert ae_comp.model.decoder_depth and ae_comp.model.latent_size == LATENT
   config.ae.latent_size = 0                                            # default: SAVi's slot size
-  assert pretrain_ae.latent_size(config) == config.savi.slot_size
+  assert ae.latent_size(config) == config.savi.slot_size
   config.ae.latent_size = -1
   with pytest.raises(UserError, match="latent_size"):
     pretrain_ae.validate_config(config)
 
 
 def test_training_checkpoints_and_records_validation_under_ae(straight):
-  root = pretrain_ae.ae_dir(straight["workdir"])
+  root = rundir.ae_dir(straight["workdir"])
   result = straight["result"]
   assert result["step"] == STEPS and [s for s, _ in result["history"]] == list(range(1, STEPS + 1))
   entries = history_lib.load(root, "val_metrics")
@@ -143,7 +147,7 @@ def test_training_checkpoints_and_records_validation_under_ae(straight):
 
 def test_two_steps_then_two_more_equal_four_straight(straight, tmp_path):
   config = straight["config"]
-  stages.save_config(config, str(tmp_path))
+  rundir.save_config(config, str(tmp_path))
   with pytest.raises(KeyboardInterrupt):                               # killed after step 2's checkpoint
     pretrain_ae.train(config, str(tmp_path), Source(fail_at=2))
   resumed = Source()
@@ -185,9 +189,9 @@ def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_p
   config.stages = ("pretrain", "cache")
   workdir = str(tmp_path / "push_ae")
   stages.run(config, workdir)
-  entries = history_lib.load(pretrain_ae.ae_dir(workdir), "val_metrics")
+  entries = history_lib.load(rundir.ae_dir(workdir), "val_metrics")
   assert [e["step"] for e in entries] == [2, 4]
-  enc = pretrain_ae.load_encoder(workdir)
+  enc = ae_encoder.load_encoder(workdir)
   features = cache.feature_dir(config, workdir, enc)
   with open(os.path.join(features, "manifest.json")) as f:
     manifest = json.load(f)

@@ -23,7 +23,7 @@ from roboshape.baselines import dino
 from roboshape.baselines import r3m
 from roboshape.baselines import resnet
 from roboshape.baselines import vit
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 import torch_baselines as ref
 
 TOL = 1e-4

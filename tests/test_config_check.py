@@ -15,8 +15,9 @@ import pytest
 
 from configs import common
 from roboshape import config_check
+from roboshape import rundir
 from roboshape import stages
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SAVI = "--config=configs/pick_savi.py:tiny"
@@ -118,7 +119,7 @@ def test_a_read_only_workdir_is_refused(tmp_path):
 
 def test_a_workdir_of_another_run_is_refused_and_kept_byte_identical(tmp_path):
   workdir = str(tmp_path / "push_r3m")
-  stages.save_config(common.get_config("push", "r3m", "tiny"), workdir)
+  rundir.save_config(common.get_config("push", "r3m", "tiny"), workdir)
   before = _snapshot(workdir)
   line = _assert_refused(_launch(SAVI, workdir=workdir), "another --workdir")
   assert "task: 'push'" in line and "encoder: 'r3m'" in line
@@ -138,7 +139,7 @@ def test_a_dataset_of_another_config_in_the_workdir_is_refused_before_config_jso
   earlier = common.get_config("pick", "savi", "tiny")
   earlier.data.train_episodes = 3
   workdir = str(tmp_path / "pick_savi")
-  stages.save_config(earlier, workdir)
+  rundir.save_config(earlier, workdir)
   summary = dict(collect.config_summary(earlier), resolution=16)
   rlds.write_dataset(data.dataset_path(config, workdir),
                      {"train": [_synthetic_episode(s, task="pick", state=True) for s in range(3)],
@@ -151,10 +152,10 @@ def test_a_dataset_of_another_config_in_the_workdir_is_refused_before_config_jso
 
 def test_the_same_run_resumed_with_other_settings_rewrites_its_config(tmp_path):
   workdir = str(tmp_path / "pick_savi")
-  stages.save_config(common.get_config("pick", "savi", "tiny"), workdir)
+  rundir.save_config(common.get_config("pick", "savi", "tiny"), workdir)
   out = _launch(SAVI, "--config.stages=()", "--config.policy.train.steps=7", workdir=workdir)
   assert out.returncode == 0, out.stderr
-  assert stages.load_config(workdir).policy.train.steps == 7
+  assert rundir.load_config(workdir).policy.train.steps == 7
 
 
 def _shipped_configs():

@@ -19,13 +19,14 @@ import pytest
 from configs import common
 from conftest import _synthetic_episode
 from roboshape import encoders
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.data import browse
 from roboshape.data import collect
 from roboshape.data import dataset_path
 from roboshape.data import reader
 from roboshape.data import rlds
 from roboshape.data import validate
+from roboshape.envs import ids
 from roboshape.envs import state as state_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -407,7 +408,7 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   first = stored["state"][0]
   assert first[cuts["cube_pos"]][2] == pytest.approx(0.02, abs=2e-3)    # the cube rests on the table
   present = first[cuts["distractors"]].reshape(-1, 5)[:, 4]
-  visible = {i for i in np.unique(stored["segmentation"]) if i >= 5}
+  visible = {i for i in np.unique(stored["segmentation"]) if 5 <= i < ids.HAND}   # distractors (13: the hand)
   assert present.sum() >= len(visible) >= 1 and set(np.flatnonzero(present) + 5) >= visible
   np.testing.assert_array_equal(stored["action"][:-1], again["action"])
   np.testing.assert_array_equal(stored["reward"][:-1], again["reward"])

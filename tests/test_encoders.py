@@ -4,7 +4,7 @@ import pytest
 
 from configs import common
 from roboshape import encoders
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.encoders import state as state_encoder
 from roboshape.envs import state as state_lib
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from roboshape import envs
+from roboshape.envs import ids as seg_ids
 from roboshape.envs import palettes
 
 RESOLUTION = 64
@@ -197,7 +198,7 @@ def test_scene_contents_and_segmentation(facts):
     seg, rgb = frame["seg"], frame["rgb"]
     ids = set(np.unique(seg).tolist())
     assert {0, 1, 2, 3, 4} <= ids
-    assert ids - {0, 1, 2, 3, 4} <= {5 + j for j in range(len(frame["colors"]))}
+    assert ids - {0, 1, 2, 3, 4, seg_ids.HAND} <= {5 + j for j in range(len(frame["colors"]))}
     cube = rgb[seg == 3].astype(int)  # the red cube is red
     assert len(cube) >= 6 and np.all(np.median(cube, 0) > [120, -1, -1]) and np.median(cube[:, 1]) < 60
     shapes.update(frame["shapes"])

@@ -249,11 +249,10 @@ def test_evaluate_resumes_after_interrupt(tmp_path):
 
 
 def _real_sim():
-  try:
-    from roboshape import sim  # pylint: disable=import-outside-toplevel
-    return sim if hasattr(sim, "SimPool") else None
-  except ImportError:
-    return None
+  """roboshape.sim, or a skip where the simulator bridge cannot be imported."""
+  sim = pytest.importorskip("roboshape.sim")
+  assert hasattr(sim, "SimPool"), "roboshape.sim imports but has no SimPool"
+  return sim
 
 
 class CrashOnce:
@@ -284,31 +283,32 @@ class CrashOnce:
     self.pool.restart()
 
 
-@pytest.fixture(scope="module")
-def evaluated(tmp_path_factory):
+@pytest.fixture(scope="module", params=["fake", "real"])
+def evaluated(request, tmp_path_factory):
   """An evaluation of level L1, 2 seeds x 2 rollouts of 8-step episodes in 2 envs, a worker killed mid-wave.
 
-  Runs through the real sim workers (roboshape.sim) when they exist, else the fake pool. The policy is the
-  scripted FakePolicy: the rollout machinery, not the policy, is under test here.
+  Runs twice: through the scripted FakePool (exact outcomes known, a worker 'dies' on step 3) and through the real
+  sim workers (roboshape.sim; worker 0 killed before step 3; skipped where the bridge cannot be imported). The
+  policy is the scripted FakePolicy: the rollout machinery, not the policy, is under test here.
   """
-  workdir = str(tmp_path_factory.mktemp("eval_run"))
+  real = request.param == "real"
+  sim = _real_sim() if real else None
+  workdir = str(tmp_path_factory.mktemp(f"eval_run_{request.param}"))
   config = _config(levels=("L1",), num_seeds=2, rollouts=2)
   config.eval.seed_offset = 10**9
   config.sim.num_workers = 2
   config.env.max_episode_steps = HORIZON
-  sim = _real_sim()
   pools = []
   def make_pool(level):
-    if sim is None:
-      pool = FakePool(size=64, crash_on_steps={3})
+    if real:
+      pool = CrashOnce(sim.SimPool(sim.EnvSpec.from_config(config, level=level), num_workers=2), at_step=3)
     else:
-      pool = sim.SimPool(sim.EnvSpec.from_config(config, level=level), num_workers=2)
-      pool = CrashOnce(pool, at_step=3)
+      pool = FakePool(size=64, crash_on_steps={3})
     pools.append(pool)
     return pool
   paths = closed_loop.evaluate(config, workdir, FakePolicy(), make_pool,
-                               sim.SimWorkerError if sim else FakeWorkerError, slot_videos=False)
-  return config, workdir, paths, pools, sim is not None
+                               sim.SimWorkerError if real else FakeWorkerError, slot_videos=False)
+  return config, workdir, paths, pools, real
 
 
 def test_evaluate_writes_all_outputs(evaluated):

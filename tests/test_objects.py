@@ -89,20 +89,23 @@ def test_the_encoder_is_registered_and_encodes_dict_batches():
     assert (config.task, config.encoder) == (task, "objects") and "pretrain" not in config.stages
   config = importlib.import_module("configs.push_objects").get_config("tiny")
   enc = encoders.build_encoder(config, "")
-  assert (enc.inputs, enc.num_tokens, enc.token_dim) == (("image", "segmentation"), K, D)
+  # The ids of distractors the config never places are always absent: their tokens are left out.
+  kept = list(objects.token_ids(config.env.max_distractors))
+  assert kept == list(range(5 + config.env.max_distractors)) + [13]
+  assert (enc.inputs, enc.num_tokens, enc.token_dim) == (("image", "segmentation"), len(kept), D)
   rng = np.random.default_rng(1)
   image, seg, depth = _random_frames(rng, batch=2 * 5)
   videos = dict(image=image.reshape(2, 5, 8, 8, 3), segmentation=seg.reshape(2, 5, 8, 8),
                 depth=depth.reshape(2, 5, 8, 8), state=np.zeros((2, 5, 65), np.float32))
   out = np.asarray(enc.encode_batch(videos))
-  assert out.shape == (2, 5, K, D) and out.dtype == np.float32
-  np.testing.assert_allclose(out.reshape(10, K, D), objects.tokens(image, seg), rtol=1e-6)
+  assert out.shape == (2, 5, len(kept), D) and out.dtype == np.float32
+  np.testing.assert_allclose(out.reshape(10, len(kept), D), objects.tokens(image, seg)[:, kept], rtol=1e-6)
   # With env.depth the encoder reads depth as well (another identity, so another feature cache).
   config.env.depth = True
   with_depth = encoders.build_encoder(config, "")
   assert with_depth.inputs == ("image", "segmentation", "depth") and with_depth.identity != enc.identity
-  np.testing.assert_allclose(np.asarray(with_depth.encode_batch(videos)).reshape(10, K, D),
-                             objects.tokens(image, seg, depth), rtol=1e-6)
+  np.testing.assert_allclose(np.asarray(with_depth.encode_batch(videos)).reshape(10, len(kept), D),
+                             objects.tokens(image, seg, depth)[:, kept], rtol=1e-6)
   np.testing.assert_allclose(np.asarray(with_depth.encode_episode({k: v[0] for k, v in videos.items()})),
                              np.asarray(with_depth.encode_batch(videos))[0], rtol=1e-6)
 

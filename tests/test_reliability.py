@@ -10,7 +10,7 @@ import pytest
 from configs import common
 from conftest import _synthetic_episode
 from roboshape import data as data_lib
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.data import collect
 from roboshape.data import reader
 from roboshape.data import rlds
@@ -220,12 +220,13 @@ def _copy_run(policy_run, tmp_path):
 
 
 def _damage_step(workdir, step):
-  """Truncates the biggest file (the arrays) of one policy checkpoint."""
+  """Truncates the biggest file (the arrays) of each item (the train state, the params) of one policy checkpoint."""
   root = os.path.join(workdir, "policy", "checkpoints", str(step))
-  files = [os.path.join(d, n) for d, _, names in os.walk(root) for n in names]
-  biggest = max(files, key=os.path.getsize)
-  with open(biggest, "r+b") as f:
-    f.truncate(os.path.getsize(biggest) // 2)
+  for item in sorted(n for n in os.listdir(root) if os.path.isdir(os.path.join(root, n))):
+    files = [os.path.join(d, n) for d, _, names in os.walk(os.path.join(root, item)) for n in names]
+    biggest = max(files, key=os.path.getsize)
+    with open(biggest, "r+b") as f:
+      f.truncate(os.path.getsize(biggest) // 2)
 
 
 def _params(config, workdir, step=None):
@@ -348,7 +349,7 @@ import jax.numpy as jnp
 from absl import logging
 from ml_collections import config_flags
 from roboshape import cli
-from roboshape.train.checkpoint import Checkpointer
+from roboshape.checkpoint import Checkpointer
 config_flags.DEFINE_config_file("config", None, "")
 
 def main(argv):
@@ -383,8 +384,37 @@ def test_an_interrupt_is_one_line_and_a_clean_exit(tmp_path, signum, code):
   assert proc.returncode == code, err[-3000:]
   assert "Traceback" not in err and err.strip().splitlines()[-1] == (
       "roboshape: interrupted; run the same command to resume"), err[-3000:]
-  from roboshape.train.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
+  from roboshape.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
   with Checkpointer(ckpt) as resumed:                                   # what was saved restores, at its last step
     latest = resumed.latest_step()
     assert resumed.restore_latest(dict(w=jnp.zeros((1 << 21,))))[1] == latest
+
+
+def test_params_restore_alone_and_from_checkpoints_before_the_params_item(tmp_path):
+  """A step holds the train state and the params as two items; serving restores the params alone. A checkpoint of
+  an earlier version (one "default" item, the whole state) restores too, its params checked against the target."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  import orbax.checkpoint as ocp  # pylint: disable=import-outside-toplevel
+  from roboshape.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
+  state = dict(step=jnp.array(3), params={"w": jnp.arange(4.0)}, opt_state={"mu": jnp.ones(4)})
+  zeros = jax.tree.map(jnp.zeros_like, state)
+  new, old = str(tmp_path / "new"), str(tmp_path / "old")
+  with Checkpointer(new) as ckpt:
+    ckpt.save(3, state)
+  assert sorted(n for n in os.listdir(os.path.join(new, "3")) if not n.startswith(("_", "commit"))) == [
+      "params", "state"]
+  manager = ocp.CheckpointManager(old, options=ocp.CheckpointManagerOptions(create=True))   # the earlier format
+  manager.save(3, args=ocp.args.StandardSave(state), force=True)
+  manager.wait_until_finished()
+  manager.close()
+  for directory in (new, old):
+    with Checkpointer(directory) as ckpt:
+      params, step = ckpt.restore_params_latest(zeros["params"])
+      assert step == 3 and np.array_equal(params["w"], np.arange(4.0))
+      restored, _ = ckpt.restore_latest(zeros)
+      assert np.array_equal(restored["opt_state"]["mu"], np.ones(4))
+      with pytest.raises(UserError, match="does not restore"):
+        ckpt.restore_params({"w": jnp.zeros(5)}, step=3)

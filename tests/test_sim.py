@@ -1,4 +1,5 @@
-"""The numpy bridge to the simulator (contract A): input checks, collection, closed loop, worker failures."""
+"""The numpy bridge to the simulator (the dicts of roboshape/sim/__init__.py): input checks, collection, closed
+loop, worker failures."""
 import os
 import subprocess
 import sys
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 
 from configs import common
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.envs import ids
 from roboshape.sim import EnvSpec, SimPool, SimWorkerError, check_seeds
 

@@ -20,7 +20,7 @@ from absl import logging
 import jax
 import numpy as np
 
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 _LEAF_TO_TORCH = {"scale": "weight", "mean": "running_mean", "var": "running_var"}
 _IGNORED_SUFFIXES = ("num_batches_tracked",)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from roboshape.baselines import convert
 from roboshape.baselines import preprocess
 from roboshape.baselines import vit
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.models.encoder import FrozenEncoder
 
 _FILES = {"vits16": "dino_deitsmall16_pretrain", "vitb16": "dino_vitbase16_pretrain"}

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from roboshape.baselines import convert
 from roboshape.baselines import preprocess
 from roboshape.baselines import resnet
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.models.encoder import FrozenEncoder
 
 DOWNLOAD_PAGE = "https://github.com/facebookresearch/r3m (load_r3m downloads it; or fetch model.pt by hand)"

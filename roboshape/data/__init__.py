@@ -9,6 +9,8 @@ modules that read or write.
 """
 import os
 
+from roboshape import rundir
+
 VERSION = "1.0.0"
 SPLITS = ("train", "val")
 STATE_FILE = "roboshape.json"  # roboshape's own record of a dataset: its config, shards, seeds and checksums
@@ -19,11 +21,6 @@ def dataset_name(task: str) -> str:
   return f"roboshape_{task}"
 
 
-def data_root(config, workdir: str) -> str:
-  """The folder that holds the datasets of a run: config.data.dir, or <workdir>/data when it is empty."""
-  return config.data.dir or os.path.join(workdir, "data")
-
-
 def dataset_path(config, workdir: str) -> str:
-  """The directory `tfds.builder_from_directory` reads: <data_root>/roboshape_<task>/<VERSION>."""
-  return os.path.join(data_root(config, workdir), dataset_name(config.task), VERSION)
+  """The directory `tfds.builder_from_directory` reads: <rundir.data_root>/roboshape_<task>/<VERSION>."""
+  return os.path.join(rundir.data_root(config, workdir), dataset_name(config.task), VERSION)

@@ -14,7 +14,7 @@ from typing import Dict
 
 import numpy as np
 
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.envs import ids
 
 colorize = ids.colorize   # one colour per segmentation id

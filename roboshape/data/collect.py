@@ -27,7 +27,8 @@ from typing import Any, Dict, Iterator, List, Mapping, Sequence
 import tqdm
 
 from roboshape import data as data_lib
-from roboshape.cli import UserError
+from roboshape import rundir
+from roboshape.errors import UserError
 from roboshape.data import rlds
 
 LEVEL = "train"
@@ -93,7 +94,7 @@ def _check_workdir_task(config, workdir: str) -> None:
   """A run's own data folder (config.data.dir empty) must not hold the dataset of another task."""
   if config.data.dir:
     return  # a shared folder holds one dataset per task side by side
-  root = data_lib.data_root(config, workdir)
+  root = rundir.data_root(config, workdir)
   mine = data_lib.dataset_name(config.task)
   if os.path.isdir(root):
     for name in sorted(os.listdir(root)):

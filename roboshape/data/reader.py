@@ -17,7 +17,7 @@ import tensorflow as tf
 import tensorflow_datasets as tfds
 
 from roboshape import data as data_lib
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 _MAX_STEPS = 1 << 20
 

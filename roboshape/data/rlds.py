@@ -43,7 +43,7 @@ from tensorflow_datasets.core import example_serializer
 
 from roboshape import data as data_lib
 from roboshape import fileio
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.envs import state as state_lib
 
 LAYOUT = "roboshape-rlds-1"

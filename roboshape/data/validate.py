@@ -17,7 +17,8 @@ from typing import Any, Dict, List
 import numpy as np
 
 from roboshape import data as data_lib
-from roboshape.cli import UserError
+from roboshape.errors import UserError
+from roboshape.envs import ids
 from roboshape.envs import state as state_lib
 
 _ACTION_TOL = 1e-6
@@ -25,11 +26,18 @@ _MAX_SHOWN = 20
 
 
 def find_dataset(path: str) -> str:
-  """`path` itself when it holds a dataset, else the one dataset under a workdir or data folder."""
+  """`path` itself when it holds a dataset, else the one dataset under a workdir or data folder.
+
+  Looks for <root>/roboshape_<task>/1.0.0 with root `path`, `path`/data, and their subfolders (a grid's
+  <workdir>/data/<task>/, configs/reproduce.py).
+  """
   if os.path.exists(os.path.join(path, data_lib.STATE_FILE)):
     return path
   found = []
-  for root in (path, os.path.join(path, "data")):
+  roots = [path, os.path.join(path, "data")]
+  roots += [os.path.join(r, d) for r in roots if os.path.isdir(r) for d in sorted(os.listdir(r))
+            if not d.startswith("roboshape_") and os.path.isdir(os.path.join(r, d))]
+  for root in dict.fromkeys(os.path.normpath(r) for r in roots):
     if os.path.isdir(root):
       for name in sorted(os.listdir(root)):
         candidate = os.path.join(root, name, data_lib.VERSION)
@@ -86,9 +94,11 @@ def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any
   blank = np.nonzero(flat.min(axis=1) == flat.max(axis=1))[0]
   if len(blank):
     problems.append(f"{where}: blank (constant) frame(s) at steps {blank[:5].tolist()}")
-  max_id = 4 + int(config.get("max_distractors", 4))
+  max_id = ids.FIRST_DISTRACTOR - 1 + int(config.get("max_distractors", 4))   # the hand (ids.HAND) may lie above
   if seg.size and int(seg.max()) > max_id:
-    problems.append(f"{where}: segmentation id {int(seg.max())} > {max_id}")
+    bad = [int(i) for i in np.unique(seg) if i > max_id and i != ids.HAND]
+    if bad:
+      problems.append(f"{where}: segmentation id {bad[-1]} > {max_id} (and not the hand's {ids.HAND})")
   want_first = np.arange(num_steps) == 0
   want_last = np.arange(num_steps) == num_steps - 1
   if not np.array_equal(ep["is_first"], want_first) or not np.array_equal(ep["is_last"], want_last):

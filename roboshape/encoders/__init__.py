@@ -13,7 +13,7 @@ import dataclasses
 import importlib
 from typing import Callable, Dict, Tuple
 
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 # What the simulator workers and the dataset provide per step (roboshape/data/rlds.py, roboshape/sim/worker.py).
 OBSERVATION_KEYS = ("image", "segmentation", "depth", "state")
@@ -26,11 +26,15 @@ class Kind:
   Attributes:
     name: the config's `encoder` value and the column name in tables.
     inputs: observation keys the encoder's step reads, e.g. ("image",) or ("state",).
-    pretrain: the module whose `run(config, workdir)` is the `pretrain` stage that trains it in the run's workdir
-      ("roboshape.train.pretrain" for SAVi); "" for an encoder built from fixed weights or from no weights.
+    pretrain: the module whose `run(config, workdir, make_validation)` is the `pretrain` stage that trains it in
+      the run's workdir ("roboshape.train.pretrain" for SAVi); "" for an encoder built from fixed weights or from
+      no weights.
     build: (config, workdir) -> roboshape.models.encoder.FrozenEncoder.
     title: the name tables print ("SAVi").
     description: one line for the README and error messages.
+    evaluator: for an encoder with a pretrain stage, the module (in roboshape/eval/) whose
+      `validation(config, root, model, episodes)` scores it during pretraining ("roboshape.eval.slots" for SAVi:
+      FG-ARI and mIoU); "" for none. roboshape/stages.py hands it to the pretrain stage.
   """
   name: str
   inputs: Tuple[str, ...]
@@ -38,6 +42,7 @@ class Kind:
   build: Callable
   title: str
   description: str
+  evaluator: str = ""
 
   def __post_init__(self):
     unknown = [k for k in self.inputs if k not in OBSERVATION_KEYS]

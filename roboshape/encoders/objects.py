@@ -1,6 +1,6 @@
 """`objects`: ground-truth object tokens from the segmentation, one per object id (control: SAVi's upper bound).
 
-Each frame becomes NUM_IDS = 14 tokens, one per segmentation id 0..13 (roboshape/envs/ids.py: 0 floor/backdrop,
+Each frame becomes up to NUM_IDS = 14 tokens, one per segmentation id 0..13 (roboshape/envs/ids.py: 0 floor/backdrop,
 1 table, 2 robot arm, 3 the red cube, 4 the target or bin, 5 + i distractor i, 13 the robot's hand), each made only of what that id's mask shows: its area, where it
 is, how large it is, its mean colour and depth. A token does not hold its id, and the trunk gives a frame's tokens
 no order (roboshape/models/policy.py), so the policy sees an unordered set of objects, like SAVi's slots. An id
@@ -21,6 +21,7 @@ config with `env.depth` true (the :small variants store depth) also reads "depth
 `FrozenEncoder.inputs` is ("image", "segmentation", "depth"), and the cache feeds it from the dataset. Without
 depth the depth entry is 0.
 """
+import functools
 import hashlib
 
 from roboshape import encoders
@@ -100,23 +101,32 @@ def tokens(image, segmentation, depth=None):
   return jnp.where(present[..., None], out, 0.0)
 
 
-def _step(params, carry, obs):
+def token_ids(max_distractors: int) -> tuple:
+  """The ids a scene with at most `max_distractors` distractors can show, in token order: backdrop, table, arm, cube,
+  goal, distractors 0..max_distractors-1, hand. The others are always absent (all-zero tokens the trunk masks out),
+  so leaving them out changes no action (tests/test_objects.py) and saves the trunk their cost."""
+  return tuple(range(ids.FIRST_DISTRACTOR + max_distractors)) + (ids.HAND,)
+
+
+def _step(kept, params, carry, obs):
   """obs {"image": uint8 [B, H, W, 3], "segmentation": [B, H, W], ("depth": uint16 [B, H, W])} ->
-  (tokens float32 [B, NUM_IDS, DIM], carry)."""
+  (tokens float32 [B, len(kept), DIM] of the ids `kept`, carry)."""
   del params
-  return tokens(obs["image"], obs["segmentation"], obs.get("depth")), carry
+  return tokens(obs["image"], obs["segmentation"], obs.get("depth"))[:, list(kept)], carry
 
 
 def _build(config, workdir: str):
-  """The encoder; it reads depth too when `config.env.depth` is true (config None: no depth)."""
+  """The encoder: the tokens of `token_ids(config.env.max_distractors)` (config None: every id); it reads depth too
+  when `config.env.depth` is true (config None: no depth)."""
   del workdir
   from roboshape.models.encoder import FrozenEncoder  # pylint: disable=import-outside-toplevel
   depth = bool(config is not None and config.env.get("depth", False))
+  kept = token_ids(int(config.env.max_distractors)) if config is not None else tuple(range(NUM_IDS))
   inputs = ("image", "segmentation") + (("depth",) if depth else ())
-  layout = hashlib.sha1(f"{NUM_IDS} ids: {describe()}".encode()).hexdigest()[:12]
-  return FrozenEncoder(name="objects", params={}, step=_step, init_state=lambda batch_size: (),
-                       num_tokens=NUM_IDS, token_dim=DIM, identity=f"objects:{layout}:{'+'.join(inputs)}",
-                       inputs=inputs)
+  layout = hashlib.sha1(f"ids {kept}: {describe()}".encode()).hexdigest()[:12]
+  return FrozenEncoder(name="objects", params={}, step=functools.partial(_step, kept),
+                       init_state=lambda batch_size: (), num_tokens=len(kept), token_dim=DIM,
+                       identity=f"objects:{layout}:{'+'.join(inputs)}", inputs=inputs)
 
 
 encoders.register(encoders.Kind(

@@ -58,7 +58,7 @@ def yaw_quat(yaw: np.ndarray) -> np.ndarray:
   return np.stack([np.cos(yaw / 2), np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2)], -1)
 
 
-def _material(color, emissive: bool = False) -> sapien.render.RenderMaterial:
+def render_material(color, emissive: bool = False) -> sapien.render.RenderMaterial:
   rgba = palettes.rgba(color)
   if emissive:  # lit by nothing: renders as its own color, whatever the lights
     return sapien.render.RenderMaterial(emission=list(rgba), base_color=[0, 0, 0, 1], roughness=1.0)
@@ -147,7 +147,7 @@ class RoboShapeEnv(BaseEnv):
     self.backdrop = Actor.merge(backdrops, name="backdrop")
     builder = self.scene.create_actor_builder()
     builder.add_box_collision(half_size=[CUBE_HALF_SIZE] * 3)
-    builder.add_box_visual(half_size=[CUBE_HALF_SIZE] * 3, material=_material(palettes.CUBE_COLOR))
+    builder.add_box_visual(half_size=[CUBE_HALF_SIZE] * 3, material=render_material(palettes.CUBE_COLOR))
     builder.initial_pose = sapien.Pose(p=[0, 0, CUBE_HALF_SIZE])
     self.cube = builder.build(name="cube")
     self.goal = self._build_goal()
@@ -156,7 +156,7 @@ class RoboShapeEnv(BaseEnv):
     builder = self.scene.create_actor_builder()
     half = [0.6, 1.2, TABLE_HEIGHT / 2]
     builder.add_box_collision(half_size=half)
-    builder.add_box_visual(half_size=half, material=_material(color))
+    builder.add_box_visual(half_size=half, material=render_material(color))
     builder.initial_pose = sapien.Pose(p=[-0.14, 0, -TABLE_HEIGHT / 2])
     builder.set_scene_idxs([i])
     return builder.build_kinematic(name=f"table_{i}")
@@ -165,7 +165,7 @@ class RoboShapeEnv(BaseEnv):
     """The floor under the table and a wall behind the robot, both in the background color."""
     builder = self.scene.create_actor_builder()
     builder.add_plane_collision(sapien.Pose(p=[0, 0, -TABLE_HEIGHT], q=[0.7071068, 0, -0.7071068, 0]))
-    material = _material(color, emissive=True)
+    material = render_material(color, emissive=True)
     builder.add_box_visual(sapien.Pose(p=[0, 0, -TABLE_HEIGHT - 0.01]), half_size=[6, 6, 0.01], material=material)
     builder.add_box_visual(sapien.Pose(p=[-1.1, 0, 0.5]), half_size=[0.01, 6, 3], material=material)
     builder.initial_pose = sapien.Pose()
@@ -174,7 +174,7 @@ class RoboShapeEnv(BaseEnv):
 
   def _build_distractor(self, i: int, j: int, shape: str, size: float, color) -> Actor:
     builder = self.scene.create_actor_builder()
-    material = _material(color)
+    material = render_material(color)
     if shape == "cube":
       builder.add_box_collision(half_size=[size] * 3)
       builder.add_box_visual(half_size=[size] * 3, material=material)

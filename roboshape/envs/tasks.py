@@ -45,7 +45,7 @@ class PushEnv(scene.RoboShapeEnv):
   def _build_goal(self) -> Actor:
     builder = self.scene.create_actor_builder()
     builder.add_cylinder_visual(sapien.Pose(q=[0.7071068, 0, 0.7071068, 0]), radius=self.TARGET_RADIUS,
-                                half_length=0.0005, material=scene._material(palettes.GOAL_COLOR))  # pylint: disable=protected-access
+                                half_length=0.0005, material=scene.render_material(palettes.GOAL_COLOR))
     builder.initial_pose = sapien.Pose(p=[0, 0, 0.001])
     return builder.build_kinematic(name="target")
 
@@ -105,7 +105,7 @@ class PlaceEnv(scene.RoboShapeEnv):
 
   def _build_goal(self) -> Actor:
     builder = self.scene.create_actor_builder()
-    material = scene._material(palettes.GOAL_COLOR)  # pylint: disable=protected-access
+    material = scene.render_material(palettes.GOAL_COLOR)
     outer = self.INNER_HALF + self.WALL
     parts = [((0, 0, self.FLOOR_TOP / 2), (outer, outer, self.FLOOR_TOP / 2))]
     wall_h = self.WALL_TOP / 2

@@ -38,14 +38,15 @@ import numpy as np
 from tqdm import tqdm
 
 from roboshape import fileio
-from roboshape.cli import UserError
+from roboshape import rundir
+from roboshape.envs.palettes import LEVEL_NAMES
+from roboshape.errors import UserError
 from roboshape.eval import plots
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
 from roboshape.eval import videos
 
 SEED_STRIDE = 100_000
-LEVELS = ("train", "L1", "L2", "L3")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,9 +61,9 @@ class Rollout:
 def rollout_plan(levels: Sequence[str], num_seeds: int, rollouts_per_seed: int,
                  seed_offset: int = 1_000_000_000) -> List[Rollout]:
   """Every rollout of an evaluation, level by level, in a fixed order (see the module docstring's seed scheme)."""
-  bad = [l for l in levels if l not in LEVELS]
+  bad = [l for l in levels if l not in LEVEL_NAMES]
   if bad:
-    raise UserError(f"unknown evaluation level(s) {bad}; config.eval.levels takes {', '.join(LEVELS)}.")
+    raise UserError(f"unknown evaluation level(s) {bad}; config.eval.levels takes {', '.join(LEVEL_NAMES)}.")
   if not 0 < rollouts_per_seed <= SEED_STRIDE:
     raise UserError(f"config.eval.rollouts_per_seed={rollouts_per_seed}: use 1..{SEED_STRIDE}.")
   if num_seeds < 1:
@@ -169,7 +170,7 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
 
 def policy_fingerprint(workdir: str) -> str:
   """Identifies the trained policy (its checkpoint steps and their times): results of another policy are stale."""
-  ckpt = os.path.join(workdir, "policy", "checkpoints")
+  ckpt = rundir.checkpoints(rundir.policy_dir(workdir))
   entries = sorted(os.listdir(ckpt)) if os.path.isdir(ckpt) else []
   text = ";".join(f"{e}:{int(os.path.getmtime(os.path.join(ckpt, e)))}" for e in entries)
   return hashlib.sha1(text.encode()).hexdigest()[:12]
@@ -194,13 +195,13 @@ def _slot_video_fn(config, workdir):
 
 def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, str]:
   """results.json, results.csv, table.md, table.tex and success_by_level.png from the rollout records."""
-  out_dir = os.path.join(workdir, "eval")
+  out_dir = rundir.eval_dir(workdir)
   os.makedirs(out_dir, exist_ok=True)
-  levels = [l for l in LEVELS if l in tuple(config.eval.levels)]
+  levels = [l for l in LEVEL_NAMES if l in tuple(config.eval.levels)]
   records = sorted(records, key=lambda r: (levels.index(r["level"]) if r["level"] in levels else 99,
                                            r["seed_index"], r["rollout"]))
   summary = results_lib.summarize(records)
-  paths = dict(json=os.path.join(out_dir, "results.json"), csv=os.path.join(out_dir, "results.csv"),
+  paths = dict(json=os.path.join(out_dir, rundir.RESULTS_FILE), csv=os.path.join(out_dir, "results.csv"),
                md=os.path.join(out_dir, "table.md"), tex=os.path.join(out_dir, "table.tex"),
                png=os.path.join(out_dir, "success_by_level.png"))
   fileio.atomic_write_json(paths["json"], dict(
@@ -257,8 +258,8 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
   """
   plan = rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                       config.eval.seed_offset)
-  log = results_lib.ResultLog(os.path.join(workdir, "eval", "results.jsonl"), fingerprint)
-  video_dir = os.path.join(workdir, "eval", "videos")
+  log = results_lib.ResultLog(os.path.join(rundir.eval_dir(workdir), "results.jsonl"), fingerprint)
+  video_dir = rundir.videos_dir(workdir)
   videos.remove_partial(video_dir)       # left by a run killed while writing one
   slot_video = _slot_video_fn(config, workdir) if slot_videos else None
 

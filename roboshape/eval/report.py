@@ -14,46 +14,46 @@ import os
 from typing import Dict, List, Tuple
 
 from roboshape import fileio
+from roboshape import rundir
+from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.eval import plots
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
-
-SKIPPED_FILE = "SKIPPED.json"
 
 
 def grid_runs(config, workdir: str) -> List[Tuple[str, str, str]]:
   """(task, encoder, run workdir) of every run the config covers."""
   if "grid" in config:
-    return [(t, e, os.path.join(workdir, f"{t}_{e}")) for t in config.grid.tasks for e in config.grid.encoders]
+    return [(t, e, rundir.grid_run_dir(workdir, t, e)) for t in config.grid.tasks for e in config.grid.encoders]
   return [(config.task, config.encoder, workdir)]
 
 
 def load_run(task: str, encoder: str, run_dir: str) -> Dict:
   """{summary, rollouts, levels} of a run's evaluation, or {skipped: reason} when there is none."""
-  skipped = os.path.join(run_dir, SKIPPED_FILE)
+  skipped = os.path.join(run_dir, rundir.SKIPPED_FILE)
   if os.path.exists(skipped):
     with open(skipped) as f:
       return dict(skipped=json.load(f).get("reason", "skipped"))
-  path = os.path.join(run_dir, "eval", "results.json")
+  path = os.path.join(rundir.eval_dir(run_dir), rundir.RESULTS_FILE)
   if not os.path.exists(path):
     return dict(skipped=f"no evaluation results ({path} is missing: run its evaluate stage)")
   with open(path) as f:
     data = json.load(f)
   return dict(summary=[dict(r, task=task, encoder=encoder) for r in data["summary"]],
-              rollouts=data["rollouts"], levels=data.get("levels", list(tables.LEVELS)),
+              rollouts=data["rollouts"], levels=data.get("levels", list(LEVEL_NAMES)),
               num_seeds=data.get("num_seeds"), rollouts_per_seed=data.get("rollouts_per_seed"))
 
 
 def build_report(config, workdir: str) -> Dict[str, str]:
   """Writes the report files; returns {name: path}."""
   runs = grid_runs(config, workdir)
-  out_dir = os.path.join(workdir, "report")
+  out_dir = rundir.report_dir(workdir)
   os.makedirs(out_dir, exist_ok=True)
   loaded = {(t, e): load_run(t, e, d) for t, e, d in runs}
   tasks = list(dict.fromkeys(t for t, _, _ in runs))
   encoders = tables.sort_encoders(list(dict.fromkeys(e for _, e, _ in runs)))
-  levels = list(config.eval.levels) if "eval" in config else list(tables.LEVELS)
-  levels = [l for l in tables.LEVELS if l in levels]
+  levels = list(config.eval.levels) if "eval" in config else list(LEVEL_NAMES)
+  levels = [l for l in LEVEL_NAMES if l in levels]
   summary = [row for r in loaded.values() if "summary" in r for row in r["summary"]]
   rollouts = [row for r in loaded.values() if "rollouts" in r for row in r["rollouts"]]
   sizes = {(r["num_seeds"], r["rollouts_per_seed"]) for r in loaded.values() if "summary" in r}

@@ -12,11 +12,11 @@ or not evaluated at that level) prints as "-".
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 from roboshape import encoders
-from roboshape.cli import UserError
+from roboshape.envs.palettes import LEVEL_NAMES
+from roboshape.errors import UserError
 
 Cell = Optional[Tuple[float, float]]
 
-LEVELS = ("train", "L1", "L2", "L3")
 ENCODER_ORDER = ("dino", "r3m", "ae", "savi", "objects", "state")   # the paper's order, then baseline and controls
 _ROW_NAMES_MD = {"train": "none"}
 _ROW_NAMES_TEX = {"train": r"$\emptyset$"}
@@ -70,7 +70,7 @@ def _cell_texts(row, bold_format: str, cell_format: str) -> list:
 
 
 def render_markdown(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[str],
-                    levels: Sequence[str] = LEVELS) -> str:
+                    levels: Sequence[str] = LEVEL_NAMES) -> str:
   """A GitHub-Markdown table: header of encoders, one row per level, "**0.69** ± 0.06" cells."""
   lines = ["| | " + " | ".join(encoder_name(e) for e in encoders) + " |",
            "| --- |" + " --- |" * len(encoders)]
@@ -81,7 +81,7 @@ def render_markdown(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[st
 
 
 def render_latex(cells: Mapping[Tuple[str, str], Cell], encoders: Sequence[str], caption: str, label: str,
-                 levels: Sequence[str] = LEVELS) -> str:
+                 levels: Sequence[str] = LEVEL_NAMES) -> str:
   """A LaTeX `table` float with the paper's `|c||c|c|c|` tabular, "\\textbf{0.69} $\\pm$ 0.06" cells."""
   lines = [r"\begin{table}[h]", rf"\caption{{{caption}}}", rf"\label{{{label}}}", r"\begin{center}",
            r"\begin{tabular}{|c||" + "c|" * len(encoders) + "}", r"\hline",

@@ -13,32 +13,32 @@ import os
 import jax
 import numpy as np
 
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 
 def write_run(config, workdir: str, seed: int = 0) -> str:
   """Writes the untrained SAVi + policy run of `config` into `workdir`; returns `workdir`."""
   # pylint: disable=import-outside-toplevel
-  from roboshape import stages
+  from roboshape import rundir
+  from roboshape.checkpoint import Checkpointer
   from roboshape.models import policy as policy_lib
   from roboshape.train import bc
   from roboshape.train import pretrain
-  from roboshape.train.checkpoint import Checkpointer
   if config.encoder != "savi":
     raise UserError(f"untrained runs exist for SAVi only, not {config.encoder!r}.")
-  stages.save_config(config, workdir)
+  rundir.save_config(config, workdir)
   comp = pretrain.compiled(config)
   r = config.env.resolution
   # Jitted inits (one compilation each) are faster than op-by-op ones; a one-frame clip has the same params.
   savi_state = jax.jit(lambda key: comp.init_state(key, (1, 1, r, r, 3)))(jax.random.key(seed))
-  with Checkpointer(os.path.join(pretrain.savi_dir(workdir), "checkpoints")) as ckpt:
+  with Checkpointer(rundir.checkpoints(rundir.savi_dir(workdir))) as ckpt:
     ckpt.save(0, savi_state)
   net = policy_lib.net_from_config(config.policy)
   optimizer = bc.make_optimizer(config.policy.train)
   state = jax.jit(lambda: bc.init_state(net, optimizer, (1, 1, comp.model.num_slots, comp.model.slot_size), seed))()
-  with Checkpointer(os.path.join(bc.policy_dir(workdir), "checkpoints")) as ckpt:
+  with Checkpointer(rundir.checkpoints(rundir.policy_dir(workdir))) as ckpt:
     ckpt.save(0, state)
   dim = config.policy.action_dim
-  with open(os.path.join(bc.policy_dir(workdir), "norm_stats.json"), "w") as f:
+  with open(os.path.join(rundir.policy_dir(workdir), bc.NORM_STATS_FILE), "w") as f:
     json.dump(dict(scale=np.ones(dim).tolist(), offset=np.zeros(dim).tolist()), f)
   return workdir

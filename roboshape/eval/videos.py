@@ -102,20 +102,20 @@ class SaviSlotVideo:
   def __call__(self, frames: np.ndarray) -> np.ndarray:
     # pylint: disable=import-outside-toplevel
     import jax
-    from roboshape import stages
+    from roboshape.encoders import savi as savi_encoder
     from roboshape.eval import decomposition
-    from roboshape.train import pretrain
+    from roboshape.models import savi
     if self._loaded is None:
-      config = stages.load_config(self.workdir)
-      self._loaded = (pretrain.compiled(config), pretrain.load_encoder(self.workdir).params)
-    comp, params = self._loaded
+      model, params, _ = savi_encoder.load(self.workdir)
+      self._loaded = (model, params)
+    model, params = self._loaded
     frames = np.asarray(frames, np.uint8)
     t = frames.shape[0]
     padded = np.concatenate([frames, np.repeat(frames[-1:], (-t) % self.pad_multiple, axis=0)])
-    out = jax.device_get(comp.eval_video(params, padded[None]))
+    out = jax.device_get(savi.decompose(model, params, padded[None]))
     recon = np.clip(out["recon"][0, :t], 0.0, 1.0)                                  # [T, h, w, 3]
     slots = decomposition.masked_slots(out["rgb"][0, :t], out["masks"][0, :t])     # [T, K, h, w, 3]
-    pool = comp.model.input_pool                                                    # h = H / pool
+    pool = model.input_pool                                                         # h = H / pool
     to_u8 = lambda x: (upscale(np.asarray(x), pool) * 255.0 + 0.5).astype(np.uint8)
     panels = [frames, to_u8(recon)] + [to_u8(slots[:, k]) for k in range(slots.shape[1])]
     return side_by_side(panels)

@@ -12,6 +12,7 @@ so the reconstruction is the decoder's RGB.
   out["latent"] [B, T, D], out["recon"] [B, T, h, w, 3] (and out["depth"] [B, T, h, w]), h = H / savi.pool
 
   latent = model.apply({"params": params}, frames, method=AE.encode)  # frames [B, H, W, 3] -> [B, D]
+  latents, () = frozen_step(model, params, (), frames_uint8)           # the frozen encoder's step: [B, 1, D]
 
 Pooling the features to the decoder's grid before flattening keeps their layout at the resolution the decoder
 draws from, and keeps the flattening layer g * g * F x D (F the encoder's output width) whatever the frame size.
@@ -20,6 +21,7 @@ import math
 from typing import Dict, Sequence
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 from roboshape.models import layers
@@ -89,7 +91,18 @@ class AE(nn.Module):
     return {k: v.reshape(batch, length, *v.shape[1:]) for k, v in out.items()}
 
 
-def build_model(savi_config, latent_size: int, resolution: int) -> AE:
+def latent_size(config) -> int:
+  """D: config.ae.latent_size, or config.savi.slot_size when it is 0."""
+  return int(config.ae.latent_size) or int(config.savi.slot_size)
+
+
+def frozen_step(model: AE, params, carry, frames: jax.Array):
+  """The FrozenEncoder step: (params, (), frames uint8 [B, H, W, 3]) -> (latents [B, 1, D], ()); no memory."""
+  latents = model.apply({"params": params}, savi.to_float(frames), method=AE.encode)
+  return latents[:, None, :], carry
+
+
+def build_model(savi_config, latent_size: int, resolution: int) -> AE:  # pylint: disable=redefined-outer-name
   """The AE over the frames `config.savi` describes (its encoder, decoder, pool and depth weight; see
   configs/common.py:savi_config), with a latent of `latent_size`, for square frames of `resolution` pixels a side."""
   c = savi_config
@@ -100,6 +113,6 @@ def build_model(savi_config, latent_size: int, resolution: int) -> AE:
       feature_size=int(c.encoder.output_size),
       decoder_grid_size=savi.decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
-      decoder_upsampling=str(c.decoder.upsampling), decoder_position=str(c.decoder.get("position", "coords")),
-      decoder_depth=savi.loss_weights(c)[1] > 0,
+      decoder_upsampling=str(c.decoder.upsampling), decoder_position=str(c.decoder.position),
+      decoder_depth=savi.depth_weight(c) > 0,
       input_pool=savi.input_pool(c))

@@ -10,10 +10,17 @@ Gaussian.
   out = model.apply({"params": params}, video, rngs={"slots": key})   # video float [B, T, H, W, 3] in [0, 1]
   out["slots"] [B, T, K, D], out["recon"] [B, T, H, W, 3], out["masks"] [B, T, K, H, W], out["rgb"] [B, T, K, H, W, 3]
 
-  slots, state = model.apply({"params": params}, frame, state, first=t == 0, method=SAVi.step)   # one frame of it
+  slots, state = model.apply({"params": params}, frame, state, method=SAVi.step)   # one frame of it
 
-Defaults follow SAVi-S on 64x64 images: 32-channel 5x5 convolutions, slot size 128, an 8x8 broadcast grid.
+Inference, as the frozen encoder and the evaluators run it (pure functions of the model and its params):
+
+  out = decompose(model, params, video)         # video uint8 [B, T, H, W, 3], from the deterministic first slots
+  slots, state = frozen_step(model, params, state, frames)    # frames uint8 [B, H, W, 3]; state [B, K, D]
+
+Every size and mode comes from the config (configs/common.py:savi_config holds the defaults; `build_model` reads
+them, `check_config` checks them against the frames).
 """
+import functools
 import math
 from typing import Dict, Optional, Sequence, Tuple
 
@@ -21,12 +28,15 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from roboshape.errors import UserError
 from roboshape.models import layers
 
-INIT_MEANS = ("shared", "per_slot", "queries")   # SlotInitializer(mean=...)
+INIT_MEANS = ("shared", "queries")               # SlotInitializer(mean=...)
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
-DECODER_RGBS = ("spatial", "slot", "slot_shaded", "slot_palette", "slot_dark")  # SpatialBroadcastDecoder(rgb=...)
-DECODER_POSITIONS = ("coords", "learned")          # SpatialBroadcastDecoder(position=...)
+DECODER_RGBS = ("spatial", "slot")               # SpatialBroadcastDecoder(rgb=...)
+DECODER_POSITIONS = ("coords", "learned")        # SpatialBroadcastDecoder(position=...)
+UPSAMPLINGS = ("subpixel", "transpose")          # Upsample(mode=...)
+INIT_SLOTS_SEED = 0                              # the fixed key of the frozen encoder's first-frame slots
 
 
 class CNNEncoder(nn.Module):
@@ -34,11 +44,11 @@ class CNNEncoder(nn.Module):
 
   images [B, H, W, 3] -> features [B, N, F] with N = (H / prod(strides)) * (W / prod(strides)).
   """
-  features: Sequence[int] = (32, 32, 32, 32, 32)
-  kernel_size: int = 5
-  strides: Sequence[int] = (1, 1, 1, 1, 1)
-  mlp_size: int = 64
-  output_size: int = 64
+  features: Sequence[int]
+  kernel_size: int
+  strides: Sequence[int]
+  mlp_size: int
+  output_size: int
 
   @nn.compact
   def __call__(self, images: jnp.ndarray) -> jnp.ndarray:
@@ -53,17 +63,16 @@ class CNNEncoder(nn.Module):
 
 
 class SlotInitializer(nn.Module):
-  """K first-frame slots: drawn from learned diagonal Gaussians, or K learned vectors.
+  """K first-frame slots: drawn from a learned diagonal Gaussian, or K learned vectors.
 
-  mean="shared": one mean [D] for all slots, so only the noise tells the slots apart (the Slot Attention paper's
-  initialisation). mean="per_slot": a learned mean per slot [K, D], so the first frame's slots start from K
-  distinct learned points rather than from noise around one point. The log-scale [D] is shared.
-  mean="queries": K learned vectors and no noise at all (learned queries): every episode starts from the same
-  slots, so a slot can come to stand for a part of the scene that is always there (the robot, the table).
+  mean="shared": one mean [D] and log-scale [D] for all slots, so only the noise tells the slots apart (the Slot
+  Attention paper's initialisation). mean="queries": K learned vectors and no noise at all (learned queries): every
+  episode starts from the same slots, so a slot can come to stand for a part of the scene that is always there (the
+  robot, the table).
   """
   num_slots: int
   slot_size: int
-  mean: str = "shared"
+  mean: str
 
   @nn.compact
   def __call__(self, noise: jnp.ndarray) -> jnp.ndarray:
@@ -88,15 +97,13 @@ class SlotAttention(nn.Module):
   learned initial slots (and SAVi's predictor) still train; the backward pass is one iteration long.
   slots [B, K, D], inputs [B, N, F] -> slots [B, K, D]; equivariant to permutations of the K slots.
   """
-  num_iterations: int = 2
-  mlp_size: int = 256
-  epsilon: float = 1e-8
+  num_iterations: int
+  mlp_size: int
   gradient: str = "full"
+  epsilon: float = 1e-8
 
   @nn.compact
-  def __call__(self, slots: jnp.ndarray, inputs: jnp.ndarray, num_iterations: Optional[int] = None) -> jnp.ndarray:
-    """num_iterations (static): this call's number of iterations, the module's own when None; the parameters are
-    the same whatever the number."""
+  def __call__(self, slots: jnp.ndarray, inputs: jnp.ndarray) -> jnp.ndarray:
     if self.gradient not in SLOT_GRADIENTS:
       raise ValueError(f"unknown slot-attention gradient {self.gradient!r}; use one of {SLOT_GRADIENTS}.")
     slot_size, init = slots.shape[-1], slots
@@ -107,7 +114,7 @@ class SlotAttention(nn.Module):
     norm_slots = nn.LayerNorm(name="norm_slots")
     gru = nn.GRUCell(slot_size, name="gru")
     mlp = layers.MLP(self.mlp_size, slot_size, layernorm=True, residual=True, name="mlp")
-    iterations = self.num_iterations if num_iterations is None else num_iterations
+    iterations = self.num_iterations
     for i in range(iterations):
       if self.gradient == "last" and i == iterations - 1 and i > 0:
         slots = jax.lax.stop_gradient(slots) + init - jax.lax.stop_gradient(init)
@@ -131,16 +138,15 @@ class Processor(nn.Module):
   slot_mlp_size: int
   predictor_heads: int
   predictor_mlp_size: int
-  predictor_identity_init: bool = False
-  gradient: str = "full"
+  predictor_identity_init: bool
+  gradient: str
 
   def setup(self):
     self.corrector = SlotAttention(self.num_iterations, self.slot_mlp_size, gradient=self.gradient)
     self.predictor = layers.TransformerBlock(self.predictor_heads, self.predictor_mlp_size, self.predictor_identity_init)
 
-  def __call__(self, predicted: jnp.ndarray, features: jnp.ndarray,
-               num_iterations: Optional[int] = None) -> Tuple[jnp.ndarray, jnp.ndarray]:
-    corrected = self.corrector(predicted, features, num_iterations)
+  def __call__(self, predicted: jnp.ndarray, features: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
+    corrected = self.corrector(predicted, features)
     return corrected, self.predictor(corrected)
 
 
@@ -180,13 +186,7 @@ class SpatialBroadcastDecoder(nn.Module):
   A learned position embedding is added to each slot broadcast over a grid_size x grid_size grid, then each layer
   upsamples by its stride (see Upsample), with ReLU; a final 1x1 layer gives RGB and alpha (rgb="spatial"), or
   alpha only, with each slot painted in one colour, a linear map of the slot (rgb="slot": a slot can then explain
-  only a region of one colour, which pushes the masks to follow colours), or that colour times a per-pixel
-  brightness gain in (0, 2) from the CNN (rgb="slot_shaded": one hue with its shading, e.g. a white robot with dark
-  joints; the gain starts at 1 everywhere, so the mode starts as "slot"), or one of the slot's `palette_size` colours
-  per pixel, picked by the CNN (rgb="slot_palette": a hard choice, the softmax's gradient passed straight through,
-  so a slot paints e.g. white links and dark joints but never the greys between; the choice starts at colour 0,
-  i.e. as "slot"), or the same hard pick between the slot's colour and that colour times the slot's own dark factor
-  in (0, 0.5) (rgb="slot_dark": two shades of one hue, e.g. white links and grey joints, but no other hue).
+  only a region of one colour, which pushes the masks to follow colours).
 
   position="coords": the grid's position embedding is a learned linear map of the pixel coordinates (SAVi's), so the
   first layer sees a ramp per channel and a shallow decoder draws smooth, convex-ish masks. position="learned": a
@@ -200,14 +200,13 @@ class SpatialBroadcastDecoder(nn.Module):
   slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W]) (and depth [B, H, W],
   slot_depth [B, K, H, W] with depth=True), with H = W = grid_size * prod(strides).
   """
-  grid_size: int = 8
-  features: Sequence[int] = (64, 64, 64, 64)
-  kernel_size: int = 5
-  strides: Sequence[int] = (2, 2, 2, 1)
+  grid_size: int
+  features: Sequence[int]
+  kernel_size: int
+  strides: Sequence[int]
   upsampling: str = "subpixel"
   rgb: str = "spatial"
   position: str = "coords"
-  palette_size: int = 2
   depth: bool = False
 
   @nn.compact
@@ -232,28 +231,10 @@ class SpatialBroadcastDecoder(nn.Module):
       x = nn.Dense(4, name="output")(x)                                    # [B*K, H, W, 4]
       x = x.reshape(batch, num_slots, *x.shape[1:])
       rgb, alpha = x[..., :3], x[..., 3]
-    elif self.rgb in ("slot", "slot_shaded"):
+    elif self.rgb == "slot":
       alpha = nn.Dense(1, name="output")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
       colour = nn.Dense(3, name="colour")(slots)                           # [B, K, 3]
       rgb = jnp.broadcast_to(colour[:, :, None, None, :], (*alpha.shape, 3))
-      if self.rgb == "slot_shaded":
-        shade = nn.Dense(1, kernel_init=nn.initializers.zeros, name="shade")(x)
-        rgb = rgb * 2.0 * jax.nn.sigmoid(shade.reshape(*alpha.shape, 1))   # [B, K, H, W, 3]
-    elif self.rgb in ("slot_palette", "slot_dark"):
-      alpha = nn.Dense(1, name="output")(x)[..., 0].reshape(batch, num_slots, *x.shape[1:3])
-      if self.rgb == "slot_palette":
-        size = self.palette_size
-        palette = nn.Dense(3 * size, name="colour")(slots).reshape(batch, num_slots, size, 3)
-      else:
-        size = 2
-        colour = nn.Dense(3, name="colour")(slots)                         # [B, K, 3]
-        dark = 0.5 * jax.nn.sigmoid(nn.Dense(1, name="dark")(slots))       # [B, K, 1]
-        palette = jnp.stack([colour, colour * dark], axis=2)               # [B, K, 2, 3]
-      logits = nn.Dense(size, kernel_init=nn.initializers.zeros, name="choice")(x)
-      soft = jax.nn.softmax(logits.reshape(*alpha.shape, size), axis=-1)    # [B, K, H, W, P]
-      hard = jax.nn.one_hot(jnp.argmax(soft, axis=-1), size, dtype=soft.dtype)
-      choice = soft + jax.lax.stop_gradient(hard - soft)                    # forward: one-hot; backward: softmax
-      rgb = jnp.einsum("bkhwp,bkpc->bkhwc", choice, palette)               # [B, K, H, W, 3]
     else:
       raise ValueError(f"unknown decoder rgb {self.rgb!r}; use one of {DECODER_RGBS}.")
     masks = jax.nn.softmax(alpha, axis=1)                                  # [B, K, H, W], sums to 1 over K
@@ -283,35 +264,34 @@ class SAVi(nn.Module):
   """The SAVi video model: CNN encoder, slot initializer, corrector + predictor scanned over time, decoder.
 
   Frames are float in [0, 1]. The model's rng stream "slots" draws the initial slots when none are given.
-  Slot attention runs first_frame_iterations times on the first frame (num_iterations when 0), from the initial
-  slots, and num_iterations times on every later frame, from the predictor's slots.
+  Slot attention runs num_iterations times on every frame: on the first from the initial slots, on every later one
+  from the predictor's slots. Every field is required: `build_model` sets them from a config.
   With input_pool = f > 1 the frames are average-pooled by f before the encoder and the decoder reconstructs the
   pooled frames (a cheaper model of the same frames; the masks are 1/f of the frames' resolution).
   """
-  num_slots: int = 11
-  slot_size: int = 128
-  init_mean: str = "shared"
-  num_iterations: int = 2
-  first_frame_iterations: int = 0
-  slot_gradient: str = "full"
-  slot_mlp_size: int = 256
-  encoder_features: Sequence[int] = (32, 32, 32, 32, 32)
-  encoder_kernel_size: int = 5
-  encoder_strides: Sequence[int] = (1, 1, 1, 1, 1)
-  encoder_mlp_size: int = 64
-  feature_size: int = 64
-  predictor_heads: int = 4
-  predictor_mlp_size: int = 256
-  predictor_identity_init: bool = False
-  decoder_grid_size: int = 8
-  decoder_features: Sequence[int] = (64, 64, 64, 64)
-  decoder_kernel_size: int = 5
-  decoder_strides: Sequence[int] = (2, 2, 2, 1)
-  decoder_upsampling: str = "subpixel"
-  decoder_rgb: str = "spatial"
-  decoder_position: str = "coords"
-  decoder_depth: bool = False
-  input_pool: int = 1
+  num_slots: int
+  slot_size: int
+  init_mean: str
+  num_iterations: int
+  slot_gradient: str
+  slot_mlp_size: int
+  encoder_features: Sequence[int]
+  encoder_kernel_size: int
+  encoder_strides: Sequence[int]
+  encoder_mlp_size: int
+  feature_size: int
+  predictor_heads: int
+  predictor_mlp_size: int
+  predictor_identity_init: bool
+  decoder_grid_size: int
+  decoder_features: Sequence[int]
+  decoder_kernel_size: int
+  decoder_strides: Sequence[int]
+  decoder_upsampling: str
+  decoder_rgb: str
+  decoder_position: str
+  decoder_depth: bool
+  input_pool: int
 
   def setup(self):
     self.encoder = CNNEncoder(self.encoder_features, self.encoder_kernel_size, self.encoder_strides,
@@ -335,25 +315,14 @@ class SAVi(nn.Module):
     """slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W])."""
     return self.decoder(slots)
 
-  @property
-  def iterations_first(self) -> int:
-    """Slot-attention iterations on the first frame of a video."""
-    return self.first_frame_iterations or self.num_iterations
-
   def encode_frame(self, frame: jnp.ndarray) -> jnp.ndarray:
     """frame [B, H, W, 3] in [0, 1] -> the encoder's features [B, N, F]."""
     return self.encoder(pool_frames(frame, self.input_pool))
 
-  def correct(self, features: jnp.ndarray, state: jnp.ndarray,
-              first: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
-    """(features [B, N, F], predicted slots [B, K, D]) -> (slots [B, K, D], next state); `first` as in `step`."""
-    return self.processor(state, features, self.iterations_first if first else None)
-
-  def step(self, frame: jnp.ndarray, state: jnp.ndarray, first: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
-    """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state).
-
-    first (static): the frame is a video's first, `state` its initial slots (first_frame_iterations apply)."""
-    return self.correct(self.encode_frame(frame), state, first)
+  def step(self, frame: jnp.ndarray, state: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
+    """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state); on a
+    video's first frame `state` is its initial slots."""
+    return self.processor(state, self.encode_frame(frame))
 
   def __call__(self, video: jnp.ndarray, init_slots: Optional[jnp.ndarray] = None,
                decode: bool = True) -> Dict[str, jnp.ndarray]:
@@ -376,15 +345,7 @@ class SAVi(nn.Module):
 
     scan = nn.scan(body, variable_broadcast="params", variable_axes={"intermediates": 1}, split_rngs={"params": False},
                    in_axes=1, out_axes=1)
-    if self.iterations_first == self.num_iterations:
-      _, (slots, predicted) = scan(self.processor, init_slots, features)
-    else:                                       # the first frame on its own, with its own number of iterations
-      corrected, carry = self.processor(init_slots, features[:, 0], self.iterations_first)
-      slots, predicted = corrected[:, None], carry[:, None]
-      if features.shape[1] > 1:
-        _, (rest, rest_predicted) = scan(self.processor, carry, features[:, 1:])
-        slots = jnp.concatenate([slots, rest], axis=1)
-        predicted = jnp.concatenate([predicted, rest_predicted], axis=1)
+    _, (slots, predicted) = scan(self.processor, init_slots, features)
     out = {"slots": slots, "predicted": predicted}
     if decode:
       decoded = self.decoder(_fold_time(slots))
@@ -393,15 +354,13 @@ class SAVi(nn.Module):
 
 
 def input_pool(savi_config) -> int:
-  """The factor config.savi.pool by which SAVi average-pools the frames (1 when the config has no such field)."""
-  return int(savi_config.get("pool", 1))
+  """The factor config.savi.pool by which SAVi average-pools the frames."""
+  return int(savi_config.pool)
 
 
-def loss_weights(savi_config) -> Tuple[float, float]:
-  """(rgb, depth): the weights config.savi.train.rgb_weight (1 when absent) and depth_weight (0 when absent); the
-  model predicts depth when the depth weight is > 0."""
-  train = savi_config.train
-  return float(train.get("rgb_weight", 1.0)), float(train.get("depth_weight", 0.0))
+def depth_weight(savi_config) -> float:
+  """config.savi.train.depth_weight: the weight of the depth MSE in the loss; the model predicts depth when > 0."""
+  return float(savi_config.train.depth_weight)
 
 
 def decoder_grid_size(savi_config, resolution: int) -> int:
@@ -410,23 +369,84 @@ def decoder_grid_size(savi_config, resolution: int) -> int:
   return grid if grid > 0 else resolution // input_pool(savi_config) // math.prod(savi_config.decoder.strides)
 
 
+def check_config(savi_config, resolution: int) -> None:
+  """Raises UserError, "savi.<field>=<value>: use ...", unless a `config.savi` section builds a SAVi (and the AE,
+  which shares its encoder, decoder and pool) that models square frames of `resolution` pixels a side: known modes,
+  one stride per layer, iterations >= 1, a pool that divides the frames, a decoder that draws the pooled frames'
+  size, a depth weight >= 0."""
+  c = savi_config
+  for field, value, choices in (("init_mean", c.init_mean, INIT_MEANS),
+                                ("slot_gradient", c.slot_gradient, SLOT_GRADIENTS),
+                                ("decoder.rgb", c.decoder.rgb, DECODER_RGBS),
+                                ("decoder.position", c.decoder.position, DECODER_POSITIONS),
+                                ("decoder.upsampling", c.decoder.upsampling, UPSAMPLINGS)):
+    if value not in choices:
+      raise UserError(f"savi.{field}={value!r}: use one of {', '.join(choices)} (see configs/common.py).")
+  for part in ("encoder", "decoder"):
+    features, strides = tuple(c[part].features), tuple(c[part].strides)
+    if len(features) != len(strides):
+      raise UserError(f"savi.{part}.strides={strides!r} has {len(strides)} entries: use {len(features)} (one "
+                      f"stride per savi.{part}.features layer).")
+  if int(c.num_iterations) < 1:
+    raise UserError(f"savi.num_iterations={c.num_iterations!r}: use an int >= 1 (slot-attention iterations per "
+                    "frame).")
+  pool = input_pool(c)
+  if pool < 1 or resolution % pool:
+    raise UserError(f"savi.pool={pool} does not divide env.resolution={resolution}: use a positive divisor of it.")
+  out = decoder_grid_size(c, resolution) * math.prod(c.decoder.strides)
+  if out != resolution // pool:
+    raise UserError(f"savi.decoder.grid_size={c.decoder.grid_size} with savi.decoder.strides="
+                    f"{tuple(c.decoder.strides)!r} makes {out}x{out} images, but SAVi models "
+                    f"{resolution // pool}x{resolution // pool} frames (env.resolution / savi.pool): set "
+                    "savi.decoder.grid_size=0 (automatic) or change savi.decoder.strides.")
+  weight = depth_weight(c)
+  if not math.isfinite(weight) or weight < 0:
+    raise UserError(f"savi.train.depth_weight={weight!r}: use a number >= 0 (the weight of the depth MSE).")
+
+
 def build_model(savi_config, resolution: int) -> SAVi:
   """The SAVi module a `config.savi` section describes (see configs/common.py:savi_config) for square frames of
   `resolution` pixels a side."""
   c = savi_config
   return SAVi(
-      num_slots=int(c.num_slots), slot_size=int(c.slot_size), init_mean=str(c.get("init_mean", "shared")),
-      num_iterations=int(c.num_iterations), first_frame_iterations=int(c.get("first_frame_iterations", 0)),
-      slot_gradient=str(c.get("slot_gradient", "full")),
-      slot_mlp_size=int(c.slot_mlp_size),
+      num_slots=int(c.num_slots), slot_size=int(c.slot_size), init_mean=str(c.init_mean),
+      num_iterations=int(c.num_iterations), slot_gradient=str(c.slot_gradient), slot_mlp_size=int(c.slot_mlp_size),
       encoder_features=tuple(c.encoder.features), encoder_kernel_size=int(c.encoder.kernel_size),
       encoder_strides=tuple(c.encoder.strides), encoder_mlp_size=int(c.encoder.mlp_size),
       feature_size=int(c.encoder.output_size),
       predictor_heads=int(c.predictor.num_heads), predictor_mlp_size=int(c.predictor.mlp_size),
-      predictor_identity_init=bool(c.predictor.get("identity_init", False)),
+      predictor_identity_init=bool(c.predictor.identity_init),
       decoder_grid_size=decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
-      decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.get("rgb", "spatial")),
-      decoder_position=str(c.decoder.get("position", "coords")),
-      decoder_depth=loss_weights(c)[1] > 0,
+      decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.rgb),
+      decoder_position=str(c.decoder.position), decoder_depth=depth_weight(c) > 0,
       input_pool=input_pool(c))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Inference: the frozen encoder's step and the decomposition the evaluators score.
+
+
+def to_float(video: jax.Array) -> jax.Array:
+  """uint8 frames [...] -> float32 in [0, 1], the models' input scaling."""
+  return video.astype(jnp.float32) / 255.0
+
+
+def initial_slots(model: SAVi, params, batch_size: int) -> jax.Array:
+  """The frozen encoder's first-frame slots [B, K, D]: the learned initializer on noise drawn with the fixed key
+  INIT_SLOTS_SEED, so encoding is deterministic and the same for every episode of a batch."""
+  noise = jax.random.normal(jax.random.key(INIT_SLOTS_SEED), (model.num_slots, model.slot_size))
+  slots = model.apply({"params": params}, noise, method=SAVi.initial_slots)
+  return jnp.broadcast_to(slots, (batch_size, *slots.shape))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def decompose(model: SAVi, params, video: jax.Array) -> Dict[str, jax.Array]:
+  """video uint8 [B, T, H, W, 3] -> the model's outputs (slots, recon, rgb, masks, ...) from `initial_slots`."""
+  return model.apply({"params": params}, to_float(video), init_slots=initial_slots(model, params, video.shape[0]))
+
+
+def frozen_step(model: SAVi, params, state: jax.Array, frames: jax.Array) -> Tuple[jax.Array, jax.Array]:
+  """The FrozenEncoder step: (params, predicted slots [B, K, D], frames uint8 [B, H, W, 3]) -> (the frame's slots
+  [B, K, D], the predicted slots of the next frame [B, K, D]); an episode's first state is `initial_slots`."""
+  return model.apply({"params": params}, to_float(frames), state, method=SAVi.step)

@@ -1,4 +1,4 @@
-"""SimPool: N simulator worker processes behind a numpy API (contract A).
+"""SimPool: N simulator worker processes behind a numpy API (the episode and frame dicts of roboshape/sim).
 
 The parent never imports sapien or mani_skill: each worker is a fresh interpreter (`python -m
 roboshape.sim.worker`), so whatever the parent imported (TensorFlow, JAX) stays out of it. A worker that dies is
@@ -25,7 +25,7 @@ from typing import Dict, Iterable, Iterator, List, Optional, Sequence
 
 import numpy as np
 
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 from roboshape.sim.spec import EnvSpec, check_seeds
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -103,7 +103,7 @@ def _stack(frames: List[dict]) -> Dict[str, np.ndarray]:
 
 
 class SimPool:
-  """N workers, each owning one RoboShape env of `spec` (contract A).
+  """N workers, each owning one RoboShape env of `spec` (the dicts they return: roboshape/sim/__init__.py).
 
   Args:
     spec: the env every worker builds.
@@ -215,7 +215,7 @@ class SimPool:
 
   # ------------------------------------------------------------------------------------------- collection
   def collect(self, seeds: Iterable[int]) -> Iterator[dict]:
-    """Runs the oracle expert from each seed; yields episodes (dicts of contract A) in completion order.
+    """Runs the oracle expert from each seed; yields episode dicts (roboshape/sim/__init__.py) in completion order.
 
     Failed episodes (success False) are yielded too. A worker that dies raises SimWorkerError; after
     `restart()` the caller may collect the seeds it has not received yet.

@@ -4,7 +4,7 @@ import numbers
 from typing import Iterable, List, Optional
 
 from roboshape import envs
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 MAX_SEED = 2**31 - 1
 

@@ -5,10 +5,9 @@ never imports TensorFlow or JAX). Requests are (command, argument) tuples; repli
 ("error", one-line message). Payloads are numpy arrays and python scalars only.
 
 Commands:
-  collect seed    -> episode dict of contract A (the oracle expert run from `seed`, with the privileged state
-                     float32 [T+1, envs.state.DIM]; with depth uint16 [T+1, H, W] in millimetres when the spec asks
-                     for depth)
-  reset seed      -> frame dict (image, segmentation, state, [depth,] success, done, elapsed)
+  collect seed    -> the episode dict of roboshape/sim/__init__.py (the oracle expert run from `seed`, with the
+                     privileged state; with depth when the spec asks for depth)
+  reset seed      -> one env's frame dict (image, segmentation, state, [depth,] success, done, elapsed)
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
   close           -> exits
 """
@@ -99,7 +98,8 @@ class Worker:
     return self._frame_dict(image, seg)
 
   def collect(self, seed: int) -> dict:
-    """Runs the oracle expert from `seed` until success or the horizon; the whole episode of contract A."""
+    """Runs the oracle expert from `seed` until success or the horizon; the whole episode dict
+    (roboshape/sim/__init__.py)."""
     np = self.np
     image, seg = self._reset(seed)
     images, segs, depths, states, actions, rewards = [image], [seg], [self._depth], [self._state], [], []

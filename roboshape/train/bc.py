@@ -1,7 +1,7 @@
 """The "train_policy" stage: behaviour cloning of the transformer policy on cached frozen-encoder features.
 
   python launch.py --config=configs/pick_savi.py:tiny          # the whole chain; this stage after "cache"
-  policy = roboshape.train.bc.load_policy(workdir)             # closed-loop controller (contract D)
+  policy = roboshape.load_policy(workdir)      # load_policy below: a roboshape.models.policy.Policy (reset, act)
 
 Samples. A sample is a window of H consecutive cached frames of one training episode, frames s .. s+H-1 with
 s uniform over the episode's windows; the [ACT] token of window position p predicts action s+p (and the next
@@ -10,11 +10,12 @@ the trunk is causal over time, so positions 0..p of the window starting at frame
 at step p < H (it reads out at the newest frame of a growing history; see roboshape/models/policy.py). Episodes
 shorter than H repeat their last frame and mask the targets past their end. Only successful demos are used.
 
-Outputs in <workdir>/policy/: checkpoints/ (orbax, train state {params, opt_state, step}), tb/ (TensorBoard:
-train NLL, learning rate, gradient norm, validation NLL and action MSE), norm_stats.json (the action
-normalisation: a = scale * a_norm + offset; identity when the demos' actions already lie in [-1, 1]),
-summary.json (the final validation figures), val_metrics.json / .png (every validation result, across resumes,
-and its curves). The stage skips when the last checkpoint is at config's steps.
+Outputs in <workdir>/policy/: checkpoints/ (orbax: the train state {params, opt_state, step}, and the params
+again on their own, which `load_params` restores without building an optimizer), tb/ (TensorBoard: train NLL,
+learning rate, gradient norm, validation NLL and action MSE), norm_stats.json (the action normalisation:
+a = scale * a_norm + offset; identity when the demos' actions already lie in [-1, 1]), summary.json (the final
+validation figures), val_metrics.json / .png (every validation result, across resumes, and its curves). The stage
+skips when the last checkpoint is at config's steps.
 """
 import functools
 import json
@@ -29,12 +30,13 @@ import optax
 from tqdm import tqdm
 
 from roboshape import fileio
-from roboshape.cli import UserError
+from roboshape import rundir
+from roboshape.checkpoint import Checkpointer
+from roboshape.errors import UserError
 from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.train import cache
 from roboshape.train import history as history_lib
-from roboshape.train.checkpoint import Checkpointer
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -145,11 +147,16 @@ def losses(net, params, batch, rng=None, train: bool = False):
   return nll, sq
 
 
+def init_params(net, tokens_shape, seed: int):
+  """The policy's variables for tokens of shape [B, H, N, D] (the train state's "params")."""
+  return net.init(jax.random.PRNGKey(seed), jnp.zeros(tokens_shape, jnp.float32),
+                  _read_out_frames(tokens_shape[0], tokens_shape[1]))
+
+
 def init_state(net, optimizer, tokens_shape, seed: int):
   """The train state {params, opt_state, step} for tokens of shape [B, H, N, D] (built by one compiled call)."""
   def build():
-    params = net.init(jax.random.PRNGKey(seed), jnp.zeros(tokens_shape, jnp.float32),
-                      _read_out_frames(tokens_shape[0], tokens_shape[1]))
+    params = init_params(net, tokens_shape, seed)
     return dict(params=params, opt_state=optimizer.init(params), step=jnp.zeros((), jnp.int32))
   return jax.jit(build)()
 
@@ -195,11 +202,9 @@ def evaluate(eval_step, params, windows: Windows, batch_size: int, max_samples: 
 # The stage.
 
 
-def policy_dir(workdir: str) -> str:
-  return os.path.join(workdir, "policy")
-
-
-ENCODER_FILE = "encoder.json"
+ENCODER_FILE = "encoder.json"        # <policy_dir>/encoder.json: the encoder the policy was trained on
+NORM_STATS_FILE = "norm_stats.json"  # <policy_dir>/norm_stats.json: the action normalisation
+SUMMARY_FILE = "summary.json"        # <policy_dir>/summary.json: the final validation figures
 
 
 def _portable(identity: str, workdir: str) -> str:
@@ -213,7 +218,7 @@ def check_encoder(workdir: str, identity: str) -> None:
   <workdir>/policy/encoder.json records the encoder a policy was trained on (written by `train`); a run trained
   before it existed is not checked.
   """
-  out = policy_dir(workdir)
+  out = rundir.policy_dir(workdir)
   path = os.path.join(out, ENCODER_FILE)
   if not os.path.exists(path):
     return
@@ -231,7 +236,7 @@ def _record_encoder(config, workdir: str, feature_path: str, resuming: bool) -> 
   manifest = cache.read_manifest(feature_path)
   if manifest is None:
     raise UserError(f"no complete feature cache in {feature_path} (no manifest.json): run the cache stage first.")
-  path = os.path.join(policy_dir(workdir), ENCODER_FILE)
+  path = os.path.join(rundir.policy_dir(workdir), ENCODER_FILE)
   if resuming:
     check_encoder(workdir, manifest["encoder_identity"])
     if os.path.exists(path):
@@ -253,11 +258,11 @@ def train(config, workdir: str, feature_path: str) -> dict:
   Resumes from the newest checkpoint that restores (a damaged newer one is set aside with a warning). A policy
   whose checkpoints were trained on another encoder than the features' is refused (`check_encoder`).
   """
-  out = policy_dir(workdir)
+  out = rundir.policy_dir(workdir)
   os.makedirs(out, exist_ok=True)
-  with Checkpointer(os.path.join(out, "checkpoints"), keep=2) as ckpt:
+  with Checkpointer(rundir.checkpoints(out), keep=2) as ckpt:
     _record_encoder(config, workdir, feature_path, resuming=ckpt.latest_step() is not None)
-    summary_path = os.path.join(out, "summary.json")
+    summary_path = os.path.join(out, SUMMARY_FILE)
     if _trained(ckpt, config.policy.train.steps, summary_path):
       print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
       with open(summary_path) as f:
@@ -271,7 +276,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer) -> dict:
   """The training loop of `train`, from the newest checkpoint in `ckpt` that restores; returns the summary."""
   pc, tc = config.policy, config.policy.train
   train_data, val_data = cache.load_split(feature_path, "train"), cache.load_split(feature_path, "val")
-  stats_path = os.path.join(out, "norm_stats.json")
+  stats_path = os.path.join(out, NORM_STATS_FILE)
   if os.path.exists(stats_path):
     with open(stats_path) as f:
       stats = json.load(f)
@@ -337,10 +342,10 @@ def run(config, workdir: str) -> None:
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
   encoder = encoders.build_encoder(config, workdir)
   check_encoder(workdir, encoder.identity)
-  ckpt_dir = os.path.join(policy_dir(workdir), "checkpoints")
+  ckpt_dir = rundir.checkpoints(rundir.policy_dir(workdir))
   if os.path.isdir(ckpt_dir):
     with Checkpointer(ckpt_dir) as ckpt:
-      if _trained(ckpt, config.policy.train.steps, os.path.join(policy_dir(workdir), "summary.json")):
+      if _trained(ckpt, config.policy.train.steps, os.path.join(rundir.policy_dir(workdir), SUMMARY_FILE)):
         print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
         return
   train(config, workdir, cache.build(config, workdir, encoder))
@@ -351,25 +356,24 @@ def run(config, workdir: str) -> None:
 
 
 def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Optional[int] = None):
-  """The trained trunk+head params from <workdir>/policy/checkpoints (latest step by default)."""
+  """(net, the trained trunk+head params) from <workdir>/policy/checkpoints (latest step by default): the params
+  alone, restored without building an optimizer."""
   pc = config.policy
   net = policy_lib.net_from_config(pc)
-  optimizer = make_optimizer(pc.train)
-  like = jax.eval_shape(functools.partial(init_state, net, optimizer, (1, pc.history, num_tokens, token_dim),
-                                          config.seed))
-  ckpt_dir = os.path.join(policy_dir(workdir), "checkpoints")
+  like = jax.eval_shape(functools.partial(init_params, net, (1, pc.history, num_tokens, token_dim), config.seed))
+  ckpt_dir = rundir.checkpoints(rundir.policy_dir(workdir))
   if not os.path.isdir(ckpt_dir):
     raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
   with Checkpointer(ckpt_dir) as ckpt:
     if ckpt.latest_step() is None:
       raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
-    state = ckpt.restore(like, step)
-  return net, state["params"]
+    params = ckpt.restore_params(like, step)
+  return net, params
 
 
 def load_policy(workdir: str, history: Optional[int] = None, action: Optional[str] = None,
                 step: Optional[int] = None, seed: int = 0) -> policy_lib.Policy:
-  """The closed-loop `Policy` of the run in `workdir` (contract D).
+  """The closed-loop `Policy` of the run in `workdir` (roboshape/models/policy.py: reset, act, act_batch).
 
   Args:
     workdir: a run's workdir (config.json, policy/checkpoints, policy/norm_stats.json, the encoder's files).
@@ -379,12 +383,11 @@ def load_policy(workdir: str, history: Optional[int] = None, action: Optional[st
     seed: the sampling seed (action="sample").
   """
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
-  from roboshape import stages  # pylint: disable=import-outside-toplevel
-  config = stages.load_config(workdir)
+  config = rundir.load_config(workdir)
   encoder = encoders.build_encoder(config, workdir)
   check_encoder(workdir, encoder.identity)
   net, params = load_params(config, workdir, encoder.num_tokens, encoder.token_dim, step)
-  with open(os.path.join(policy_dir(workdir), "norm_stats.json")) as f:
+  with open(os.path.join(rundir.policy_dir(workdir), NORM_STATS_FILE)) as f:
     stats = json.load(f)
   ev = config.policy.eval
   spec = policy_lib.ControlSpec(history=history or ev.history or config.policy.history,

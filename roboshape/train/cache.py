@@ -23,7 +23,8 @@ import numpy as np
 from tqdm import tqdm
 
 from roboshape import fileio
-from roboshape.cli import UserError
+from roboshape import rundir
+from roboshape.errors import UserError
 
 SPLITS = ("train", "val")
 SHARD_SIZE = 64          # episodes per shard file
@@ -165,7 +166,7 @@ def feature_dir(config, workdir: str, encoder) -> str:
   from roboshape import data  # pylint: disable=import-outside-toplevel
   path = data.dataset_path(config, workdir)
   key = cache_key(encoder.identity, path, dataset_fingerprint(path), config.policy.cache_dtype)
-  return os.path.join(workdir, "features", key)
+  return rundir.features_dir(workdir, key)
 
 
 def build(config, workdir: str, encoder, episode_source=None) -> str:
@@ -177,7 +178,7 @@ def build(config, workdir: str, encoder, episode_source=None) -> str:
   path = data.dataset_path(config, workdir)
   fingerprint = dataset_fingerprint(path)
   key = cache_key(encoder.identity, path, fingerprint, config.policy.cache_dtype)
-  out = os.path.join(workdir, "features", key)
+  out = rundir.features_dir(workdir, key)
   manifest_path = os.path.join(out, "manifest.json")
   if os.path.exists(manifest_path):
     print(f"[cache] features already cached in {out}", flush=True)

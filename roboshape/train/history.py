@@ -2,11 +2,13 @@
 
   history.record(root, "val_metrics", step, {"fg_ari": 0.61, "miou": 0.5}, train_seconds, keys=("fg_ari", "miou"))
   -> <root>/val_metrics.json  [{"step": ..., "train_seconds": ..., "fg_ari": ..., ...}, ...]
-     <root>/val_metrics.png   the keys against the step
+     <root>/val_metrics.png   the keys against the step (`metric_curve`)
 """
 import json
 import os
 from typing import Dict, List, Sequence
+
+import numpy as np
 
 from roboshape import fileio
 
@@ -34,12 +36,41 @@ def record(root: str, name: str, step: int, metrics: Dict[str, float], train_sec
   Results at or after `step` (left by a run killed after them and resumed from an earlier checkpoint) are
   replaced. train_seconds: wall seconds of training up to `step`, summed over the runs that made it.
   """
-  from roboshape.eval import plots  # pylint: disable=import-outside-toplevel
   history = [h for h in load(root, name) if h["step"] < step]
   history.append({"step": int(step), "train_seconds": round(float(train_seconds), 1),
                   **{k: float(v) for k, v in metrics.items()}})
   os.makedirs(root, exist_ok=True)
   fileio.atomic_write_json(os.path.join(root, f"{name}.json"), history)
-  plots.metric_curve(history, keys, os.path.join(root, f"{name}.png"),
-                     title=f"{title} (step {step}, {train_seconds / 60:.0f} min of training)", ylim=ylim)
+  metric_curve(history, keys, os.path.join(root, f"{name}.png"),
+               title=f"{title} (step {step}, {train_seconds / 60:.0f} min of training)", ylim=ylim)
   return history
+
+
+def metric_curve(history: Sequence[Dict], keys: Sequence[str], path: str, title: str = "", ylim=None) -> str:
+  """Writes a PNG of history[i][key] against history[i]["step"], one panel per key, to `path`; returns `path`.
+
+  ylim: (low, high) for every panel, either None for matplotlib's choice; (None, 1.0) suits scores <= 1 (the panel
+  then starts at 0, or lower if a score is negative).
+  """
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+
+  steps = [h["step"] for h in history]
+  fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 2.8), dpi=150, squeeze=False)
+  for ax, key in zip(axes[0], keys):
+    values = [h.get(key, float("nan")) for h in history]
+    ax.plot(steps, values, marker="o", markersize=3)
+    ax.set_xlabel("training step")
+    ax.set_title(key, fontsize=8)
+    if ylim is not None:
+      finite = [v for v in values if np.isfinite(v)]
+      ax.set_ylim(ylim[0] if ylim[0] is not None else min([0.0] + finite), ylim[1])
+    ax.grid(alpha=0.3)
+    ax.spines[["top", "right"]].set_visible(False)
+  fig.suptitle(title, fontsize=9)
+  fig.tight_layout()
+  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+  fig.savefig(path)
+  plt.close(fig)
+  return path

@@ -1,8 +1,14 @@
 """Orbax checkpoints for every training stage: periodic saves, keep the last N, resume at the saved step.
 
-  ckpt = Checkpointer(os.path.join(workdir, "savi", "checkpoints"), keep=3)
+  ckpt = Checkpointer(rundir.checkpoints(rundir.savi_dir(workdir)), keep=3)
   state, step = ckpt.resume(state)       # the latest step that restores (or `state` itself and step 0)
   ckpt.save(step, state)                 # asynchronous; `ckpt.close()` waits for it
+  params, step = ckpt.restore_params_latest(like)   # serving: the parameters alone, no optimizer state
+
+A step holds two orbax items: "state", the whole train state (step, params, optimizer moments), which training
+resumes from, and "params", the train state's "params" saved again on their own, which serving restores without
+building an optimizer. A checkpoint written before the "params" item existed (one item, orbax's "default") still
+restores: its params are read out of the whole state, restored as saved.
 
 A damaged checkpoint (a truncated or corrupted file) does not stop a run: `restore_latest` and `resume` warn in one
 line and fall back to the next older step that restores; `resume` also moves the damaged steps aside (to
@@ -21,9 +27,10 @@ from typing import Any, Iterator, List, Optional, Tuple
 import jax
 import orbax.checkpoint as ocp
 
-from roboshape.cli import UserError
+from roboshape.errors import UserError
 
 DAMAGED_PREFIX = "damaged_step_"
+STATE, PARAMS, LEGACY = "state", "params", "default"     # the items of a step (LEGACY: before "params" existed)
 
 
 class Checkpointer:
@@ -32,7 +39,8 @@ class Checkpointer:
   def __init__(self, directory: str, keep: int = 3):
     self.directory = os.path.abspath(directory)
     self._manager = ocp.CheckpointManager(
-        self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
+        self.directory, item_names=(STATE, PARAMS, LEGACY),
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
 
   def latest_step(self) -> Optional[int]:
     return self._manager.latest_step()
@@ -42,7 +50,11 @@ class Checkpointer:
     return sorted(self._manager.all_steps())
 
   def save(self, step: int, state: Any) -> None:
-    self._manager.save(step, args=ocp.args.StandardSave(state), force=True)
+    """Saves `state` as the "state" item of `step`, and its "params" (when it has them) as the "params" item."""
+    items = {STATE: ocp.args.StandardSave(state)}
+    if isinstance(state, dict) and PARAMS in state:
+      items[PARAMS] = ocp.args.StandardSave(state[PARAMS])
+    self._manager.save(step, args=ocp.args.Composite(**items), force=True)
 
   def restore(self, like: Any, step: Optional[int] = None) -> Any:
     """Restores the checkpoint at `step` into the structure, shapes and dtypes of `like`.
@@ -58,6 +70,21 @@ class Checkpointer:
                       f"load another step (saved: {self.all_steps()}).")
     return state
 
+  def restore_params(self, like: Any, step: Optional[int] = None) -> Any:
+    """The params of the checkpoint at `step` (None: the latest that restores), as `restore` for the state."""
+    if step is None:
+      return self.restore_params_latest(like)[0]
+    params, failure = self._try_restore(step, like, PARAMS)
+    if failure:
+      raise UserError(f"checkpoint step {step} in {self.directory} does not restore ({failure}); "
+                      f"load another step (saved: {self.all_steps()}).")
+    return params
+
+  def restore_params_latest(self, like: Any) -> Tuple[Any, int]:
+    """(params, step) of the newest checkpoint whose params restore into `like`'s structure; as `restore_latest`
+    (without setting anything aside)."""
+    return self._newest(like, False, PARAMS)
+
   def restore_latest(self, like: Any, set_aside: bool = False) -> Tuple[Any, int]:
     """(state, step) of the newest checkpoint that restores into `like`'s structure.
 
@@ -65,12 +92,15 @@ class Checkpointer:
     moved to <directory>/damaged_step_<N> once an older step has restored. Raises FileNotFoundError when there is
     no checkpoint and UserError when none restores (nothing is moved then).
     """
+    return self._newest(like, set_aside, STATE)
+
+  def _newest(self, like: Any, set_aside: bool, item: str) -> Tuple[Any, int]:
     steps = self.all_steps()[::-1]
     if not steps:
       raise FileNotFoundError(f"no checkpoint in {self.directory}")
     failed = []
     for i, step in enumerate(steps):
-      state, failure = self._try_restore(step, like)
+      state, failure = self._try_restore(step, like, item)
       if failure:
         failed.append((step, failure))
         if i + 1 < len(steps):
@@ -128,13 +158,24 @@ class Checkpointer:
     finally:
       logging.disable(level)
 
-  def _try_restore(self, step: int, like: Any) -> Tuple[Any, Optional[str]]:
-    """(state, None) when checkpoint `step` restores into `like`'s structure (None: as saved), else (None, why)."""
+  def _try_restore(self, step: int, like: Any, item: str = STATE) -> Tuple[Any, Optional[str]]:
+    """(the `item` of checkpoint `step`, None) when it restores into `like`'s structure (None: as saved), else
+    (None, why). A legacy checkpoint (one "default" item, the whole state) gives its params restored as saved,
+    checked against `like`'s shapes."""
     abstract = None if like is None else jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+    legacy = os.path.isdir(os.path.join(self.directory, str(step), LEGACY))
     _drop_stragglers()
     with _quiet() as sink:
       try:
-        return self._manager.restore(step, args=ocp.args.StandardRestore(abstract)), None
+        if not legacy:
+          return self._manager.restore(step, args=ocp.args.Composite(
+              **{item: ocp.args.StandardRestore(abstract)}))[item], None
+        if item == STATE:
+          return self._manager.restore(step, args=ocp.args.Composite(
+              **{LEGACY: ocp.args.StandardRestore(abstract)}))[LEGACY], None
+        params = self._manager.restore(step, args=ocp.args.Composite(
+            **{LEGACY: ocp.args.StandardRestore(None)}))[LEGACY][PARAMS]
+        return params, _mismatch(params, abstract)
       except Exception as e:  # pylint: disable=broad-except
         failure = _reason(e)
       _settle(sink)
@@ -151,6 +192,18 @@ class Checkpointer:
       os.rename(os.path.join(self.directory, str(step)), target)
       _warn(f"[roboshape] moved the damaged checkpoint step {step} to {target}")
     self._manager.reload()
+
+
+def restore_params(directory: str, like: Any, missing: str) -> Tuple[Any, int]:
+  """(params, step) of the newest checkpoint in `directory` whose params restore into `like` (a damaged newer one
+  is skipped with a one-line warning); UserError(`missing`) when there is no checkpoint. Builds no optimizer."""
+  ckpt = Checkpointer(directory)
+  try:
+    if ckpt.latest_step() is None:
+      raise UserError(missing)
+    return ckpt.restore_params_latest(like)
+  finally:
+    ckpt.close()
 
 
 @contextlib.contextmanager
@@ -211,6 +264,18 @@ def _drop_stragglers() -> None:
 
   sys.unraisablehook = hook
   logging.getLogger("asyncio").addFilter(_AbandonedReadFilter())
+
+
+def _mismatch(tree: Any, like: Any) -> Optional[str]:
+  """None when `tree` has the structure and shapes of `like` (or `like` is None), else why not."""
+  if like is None:
+    return None
+  if jax.tree.structure(tree) != jax.tree.structure(like):
+    return "ValueError: the saved params have another structure"
+  for a, b in zip(jax.tree.leaves(tree), jax.tree.leaves(like)):
+    if tuple(a.shape) != tuple(b.shape):
+      return f"ValueError: saved params of shape {tuple(a.shape)}, expected {tuple(b.shape)}"
+  return None
 
 
 def _reason(e: BaseException) -> str:

@@ -1,0 +1,158 @@
+"""The package's floors, read off every module's imports with `ast` (imports inside functions included).
+
+A module may import its own layer or the layers below it, never one above:
+
+  9  benchmarks/, scripts/
+  8  stages, cli, launch.py, the package's entry points (roboshape/__init__.py), configs/
+  7  grid, config_check      the runs of a grid config; the check of a whole config before any stage runs
+  6  eval                    evaluators, closed loop, tables, report
+  5  train                   pretraining, behaviour cloning, the feature cache
+  4  encoders                the registry and the frozen encoders it serves
+  3  data                    the RLDS dataset
+  2  sim, baselines          the simulator bridge; the official R3M / DINO networks
+  1  envs, models            the tasks and levels; the Flax modules
+  0  errors, fileio, rundir, checkpoint
+
+and no module reads a private name (a leading underscore) of another module, benchmarks and scripts included.
+
+  python tests/test_layout.py [ROOT]      # prints the arrows that point up (and the private names) under ROOT
+"""
+import ast
+import os
+import sys
+from typing import Dict, Iterator, List, Optional, Set, Tuple
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+LAYERS = {
+    "roboshape.errors": 0, "roboshape.fileio": 0, "roboshape.rundir": 0, "roboshape.checkpoint": 0,
+    "roboshape.envs": 1, "roboshape.models": 1,
+    "roboshape.sim": 2, "roboshape.baselines": 2,
+    "roboshape.data": 3,
+    "roboshape.encoders": 4,
+    "roboshape.train": 5,
+    "roboshape.eval": 6,
+    "roboshape.grid": 7, "roboshape.config_check": 7,
+    "roboshape.stages": 8, "roboshape.cli": 8, "roboshape": 8, "launch": 8, "configs": 8,
+    "benchmarks": 9, "scripts": 9,
+}
+SCANNED = ("roboshape", "configs", "benchmarks", "scripts", "launch.py")
+
+
+def layer(module: str) -> Optional[int]:
+  """The layer of a dotted module name (its longest prefix in LAYERS); None for a module outside them."""
+  parts = module.split(".")
+  for n in range(len(parts), 0, -1):
+    name = ".".join(parts[:n])
+    if name in LAYERS:
+      return LAYERS[name]
+  return None
+
+
+def modules(root: str) -> Iterator[Tuple[str, str]]:
+  """(dotted name, path) of every Python module under the scanned folders of `root`."""
+  for top in SCANNED:
+    path = os.path.join(root, top)
+    if os.path.isfile(path):
+      yield top[:-3], path
+      continue
+    for folder, dirs, files in os.walk(path):
+      dirs[:] = sorted(d for d in dirs if not d.startswith((".", "__")))
+      for name in sorted(files):
+        if name.endswith(".py"):
+          rel = os.path.relpath(os.path.join(folder, name), root)[:-3].split(os.sep)
+          if rel[-1] == "__init__":
+            rel = rel[:-1]
+          yield ".".join(rel), os.path.join(folder, name)
+
+
+def _resolve(root: str, package: str, name: str) -> str:
+  """`from package import name`: the submodule package.name when it exists, else package itself."""
+  base = os.path.join(root, *f"{package}.{name}".split("."))
+  return f"{package}.{name}" if os.path.isfile(base + ".py") or os.path.isdir(base) else package
+
+
+def imports(root: str, module: str, path: str) -> Tuple[Set[str], List[str]]:
+  """(the first-party modules `module` imports, the private names it takes from other modules)."""
+  with open(path) as f:
+    tree = ast.parse(f.read(), path)
+  found: Set[str] = set()
+  private: List[str] = []
+  bound: Dict[str, str] = {}                  # local name -> the module it is bound to
+  package = module if path.endswith("__init__.py") else module.rpartition(".")[0]
+  for node in ast.walk(tree):
+    if isinstance(node, ast.Import):
+      for alias in node.names:
+        if layer(alias.name) is not None:
+          found.add(alias.name)
+          if alias.asname:
+            bound[alias.asname] = alias.name
+    elif isinstance(node, ast.ImportFrom):
+      source = node.module or ""
+      if node.level:
+        parts = package.split(".")[:len(package.split(".")) - node.level + 1]
+        source = ".".join(parts + ([source] if source else []))
+      if layer(source) is None:
+        continue
+      for alias in node.names:
+        target = _resolve(root, source, alias.name)
+        found.add(target)
+        if target != source:
+          bound[alias.asname or alias.name] = target
+        elif alias.name.startswith("_") and source != module:
+          private.append(f"{module}: from {source} import {alias.name}")
+  for node in ast.walk(tree):
+    if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in bound
+        and node.attr.startswith("_") and not node.attr.startswith("__") and bound[node.value.id] != module):
+      private.append(f"{module}: {bound[node.value.id]}.{node.attr}")
+  found.discard(module)
+  return found, sorted(set(private))
+
+
+def scan(root: str) -> Tuple[List[str], List[str]]:
+  """(the import arrows under `root` that point to a higher layer, the private names read across modules)."""
+  up, private = [], []
+  for module, path in modules(root):
+    targets, names = imports(root, module, path)
+    private += names
+    for target in sorted(targets):
+      if layer(module) is not None and layer(target) is not None and layer(target) > layer(module):
+        up.append(f"{module} (layer {layer(module)}) -> {target} (layer {layer(target)})")
+  return up, private
+
+
+def test_no_import_points_to_a_higher_layer():
+  up, _ = scan(ROOT)
+  assert not up, "imports that point up:\n" + "\n".join(up)
+
+
+def test_no_module_reads_another_modules_private_names():
+  _, private = scan(ROOT)
+  assert not private, "private names read across modules:\n" + "\n".join(private)
+
+
+def test_train_never_imports_eval_and_the_bottom_imports_nothing_above_it():
+  """The two floors the layers exist for, spelled out: train/ -> eval/ and anything below train/ -> train/."""
+  for module, path in modules(ROOT):
+    targets, _ = imports(ROOT, module, path)
+    if module.startswith("roboshape.train"):
+      assert not [t for t in targets if t.startswith("roboshape.eval")], module
+    if layer(module) is not None and layer(module) < LAYERS["roboshape.train"]:
+      assert not [t for t in targets if t.startswith("roboshape.train")], module
+
+
+def test_the_scan_sees_imports_inside_functions(tmp_path):
+  pkg = tmp_path / "roboshape" / "train"
+  pkg.mkdir(parents=True)
+  (tmp_path / "roboshape" / "__init__.py").write_text("")
+  (pkg / "__init__.py").write_text("")
+  (pkg / "x.py").write_text("def f():\n  from roboshape.eval import plots\n  from roboshape.data import _y\n")
+  up, private = scan(str(tmp_path))
+  assert up == ["roboshape.train.x (layer 5) -> roboshape.eval (layer 6)"]
+  assert private == ["roboshape.train.x: from roboshape.data import _y"]
+
+
+if __name__ == "__main__":
+  arrows, names = scan(sys.argv[1] if len(sys.argv) > 1 else ROOT)
+  print("\n".join(arrows + names))
+  print(f"{len(arrows)} import arrows point up; {len(names)} private names read across modules")
