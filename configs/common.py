@@ -132,6 +132,10 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           checkpoint_every=_pick(variant, 1000, 250, 10),
           keep_checkpoints=3,
           log_every=_pick(variant, 50, 10, 1),
+          # (): one run with config.seed, in <workdir>/savi/. (s1, s2, ...): one run per seed in savi/seed_<s>/,
+          # the one with the best final validation FG-ARI served (savi/selected.json); the AE is selected by its
+          # validation reconstruction MSE. Needs savi.eval.episodes >= 1 with two seeds or more.
+          seeds=(),
       )),
       eval=ml_collections.ConfigDict(dict(
           every=_pick(variant, 5000, 500, 20),     # steps between evaluations (and after the last step)
@@ -192,6 +196,9 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       min_scale=1e-4,           # floor on the GMM's softplus scales
       chunk=1,                  # C: future actions predicted per step (1: no chunking)
       cache_dtype="float32",    # dtype of the cached encoder features ("float16" halves the cache)
+      # () one policy trained with config.seed, in <workdir>/policy/; (s1, s2, ...) one policy per training seed, in
+      # policy/seed_<s>/, each evaluated on the same evaluation seeds; tables then give mean ± std over them
+      train_seeds=(),
       train=ml_collections.ConfigDict(dict(
           steps=_pick(variant, 100_000, 5000, 20),
           batch_size=_pick(variant, 256, 64, 4),

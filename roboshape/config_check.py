@@ -17,6 +17,7 @@ the SAVi and baseline checks import their model modules (JAX, Flax) only for tho
 JAX backend. Defaults are configs/common.py's alone: every field checked here is required.
 """
 import math
+import os
 import numbers
 from typing import Any, Iterable, Sequence, Tuple
 
@@ -261,6 +262,11 @@ def _check_policy(config) -> None:
     raise UserError(f"policy.eval.history={policy.eval.history} exceeds policy.history={policy.history}: use at "
                     "most the training history (0: the training history).")
   check_choice(config, "policy.eval.action", _POLICY_ACTIONS, "the mixture mean, or a sampled mode")
+  seeds = _value(config, "policy.train_seeds")
+  if (isinstance(seeds, str) or not isinstance(seeds, (tuple, list)) or len(set(seeds)) != len(seeds)
+      or not all(_is_int(s) and s >= 0 for s in seeds)):
+    raise UserError(f"policy.train_seeds={seeds!r}: use a tuple of distinct ints >= 0 (one policy per training "
+                    "seed), or () for one policy trained with config.seed.")
   dtype = _value(config, "policy.cache_dtype")
   try:
     floating = np.dtype(dtype).kind == "f"
@@ -306,6 +312,14 @@ def _check_savi(config) -> None:
   if not isinstance(c.eval.background_ids, (tuple, list)) or not all(
       _is_int(i) and i >= 0 for i in c.eval.background_ids):
     raise UserError(f"savi.eval.background_ids={c.eval.background_ids!r}: use a tuple of segmentation ids >= 0.")
+  seeds = _value(config, "savi.train.seeds")
+  if isinstance(seeds, str) or not isinstance(seeds, (tuple, list)) or not all(
+      _is_int(s) and s >= 0 for s in seeds) or len(set(seeds)) != len(seeds):
+    raise UserError(f"savi.train.seeds={seeds!r}: use a tuple of distinct ints >= 0, e.g. \"(0, 1, 2)\" (one "
+                    "pretraining run per seed, the best by validation kept), or () for one run with config.seed.")
+  if len(seeds) > 1 and c.eval.episodes < 1:
+    raise UserError(f"savi.train.seeds={tuple(seeds)!r} selects a seed by validation, which "
+                    f"savi.eval.episodes={c.eval.episodes} turns off: set savi.eval.episodes >= 1, or train one seed.")
   depth_weight = savi.depth_weight(c)
   if depth_weight > 0 and not config.env.depth and {"collect", "pretrain"} & set(config.stages):
     raise UserError(f"savi.train.depth_weight={depth_weight} needs depth in the dataset: set "
@@ -343,12 +357,20 @@ _SECTION_CHECKS = {
 
 
 def _check_grid(config) -> None:
-  """grid.tasks and grid.encoders: non-empty tuples of known tasks and registered encoders."""
+  """grid.tasks and grid.encoders: non-empty tuples of known tasks and registered encoders; grid.publish a folder."""
   for field, known in (("grid.tasks", envs.TASKS), ("grid.encoders", encoders.names())):
     value = _value(config, field)
     if isinstance(value, str) or not isinstance(value, (tuple, list)) or not value or any(
         v not in known for v in value):
       raise UserError(f"{field}={value!r}: use a non-empty tuple of {_choices(known)}.")
+  unknown = [t for t in config.grid.get("train_seeds", {}) if t not in envs.TASKS]
+  if unknown:
+    raise UserError(f"grid.train_seeds names {', '.join(map(repr, unknown))}: use tasks among {_choices(envs.TASKS)}.")
+  publish = config.grid.get("publish", "")
+  if not isinstance(publish, str):
+    raise UserError(f"grid.publish={publish!r}: use a folder (e.g. \"results/small\") or \"\" to publish nothing.")
+  if publish and os.path.exists(publish) and not os.path.isdir(publish):
+    raise UserError(f"grid.publish={publish!r} is a file; give a folder for the finished runs' results.")
 
 
 def check_single(config) -> None:

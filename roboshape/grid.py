@@ -14,7 +14,8 @@ def grid_configs(config, workdir: str):
 
   Each run is the grid's config with its task and encoder set, in rundir.grid_run_dir (<workdir>/<task>_<encoder>/),
   reading the task's dataset from rundir.grid_data_dir (<data_root>/<task>, shared by the task's runs; collected
-  once). Runs of encoders with a pretraining stage (SAVi) come first within a task.
+  once). Runs of encoders with a pretraining stage (SAVi) come first within a task. `grid.train_seeds`, a
+  {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names.
   """
   import ml_collections  # pylint: disable=import-outside-toplevel
   base = config.to_dict()
@@ -27,4 +28,7 @@ def grid_configs(config, workdir: str):
       pretrains = encoders.get(encoder).pretrain
       sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
       sub.data.dir = rundir.grid_data_dir(config, workdir, task)
+      seeds = config.grid.get("train_seeds", {}).get(task)
+      if seeds:
+        sub.policy.train_seeds = tuple(seeds)
       yield task, encoder, sub, rundir.grid_run_dir(workdir, task, encoder)

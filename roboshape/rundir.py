@@ -5,13 +5,21 @@
   <workdir>/savi/            SAVi: checkpoints/, tb/, figures/, val_metrics.json/.png       (`savi_dir`)
   <workdir>/ae/              the `ae` encoder, as savi/                                      (`ae_dir`)
   <workdir>/features/<key>/  encoder features cached per (dataset, encoder checkpoint)       (`features_dir`)
-  <workdir>/policy/          checkpoints/, tb/, norm_stats.json, encoder.json, summary.json   (`policy_dir`)
+  <workdir>/policy/          checkpoints/, tb/, norm_stats.json, encoder.json, summary.json   (`policy_dir`);
+                             with policy.train_seeds, one such folder per seed: policy/seed_<s>/
   <workdir>/eval/            results.jsonl/.json/.csv, tables, plots, videos/                 (`eval_dir`)
   <workdir>/report/          the report over a grid's runs (or the run itself)                (`report_dir`)
 
 A grid config (configs/reproduce.py) runs each (task, encoder) in <workdir>/<task>_<encoder>/ (`grid_run_dir`),
 reading the task's dataset from <data_root>/<task>; a grid run skipped for bad input leaves SKIPPED.json there.
 `STAGES` names the stages, in the order a config runs them.
+
+With savi.train.seeds = (s1, s2, ...) (roboshape/train/pretrain.py) savi/ (and ae/) hold one training run per seed
+instead, each as savi/ above, and the choice among them:
+  <savi_dir>/seed_<s>/           one seed's checkpoints/, tb/, figures/, val_metrics.json/.png  (`seed_dir`)
+  <savi_dir>/selected.json       every seed's final validation and the selected seed        (`selection_path`)
+  <savi_dir>/seeds_<metric>.png  every seed's validation curve of the selection metric       (`seeds_figure`)
+With seeds = () (the default) there is one run, with config.seed, in savi/ itself, as above.
 """
 import json
 import os
@@ -24,6 +32,7 @@ CONFIG_FILE = "config.json"
 SKIPPED_FILE = "SKIPPED.json"      # a grid run skipped for bad input: {"reason": the one-line message}
 CHECKPOINTS = "checkpoints"
 RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and the per-level summary
+SELECTION_FILE = "selected.json"   # <savi_dir>/selected.json: the seed of savi.train.seeds that pretraining selected
 
 
 def config_path(workdir: str) -> str:
@@ -64,13 +73,54 @@ def ae_dir(workdir: str) -> str:
   return os.path.join(workdir, "ae")
 
 
+def seed_dir(stage_dir: str, seed: int) -> str:
+  """The training run of one seed of savi.train.seeds inside a pretrain stage's folder (savi_dir, ae_dir)."""
+  return os.path.join(stage_dir, f"seed_{int(seed)}")
+
+
+def selection_path(stage_dir: str) -> str:
+  """<stage_dir>/selected.json: which seed of savi.train.seeds the pretrain stage selected (`load_selection`)."""
+  return os.path.join(stage_dir, SELECTION_FILE)
+
+
+def load_selection(stage_dir: str):
+  """The dict <stage_dir>/selected.json holds ({"selected_seed", "metric", "seeds": [{"seed", "step", <metric>...}],
+  ...}, written by roboshape/train/pretrain.py), or None when there is none (seeds not trained to the end yet)."""
+  path = selection_path(stage_dir)
+  if not os.path.exists(path):
+    return None
+  try:
+    with open(path) as f:
+      selection = json.load(f)
+    seeds = [int(s["seed"]) for s in selection["seeds"]]
+    if int(selection["selected_seed"]) not in seeds:
+      raise ValueError(f"selected_seed {selection['selected_seed']} is not one of {seeds}")
+  except (OSError, ValueError, KeyError, TypeError) as e:
+    raise UserError(f"{path} is not a readable seed selection ({e}); run the pretrain stage again to rewrite it.") \
+        from None
+  return selection
+
+
+def seeds_figure(stage_dir: str, metric: str) -> str:
+  """<stage_dir>/seeds_<metric>.png: every seed's validation curve of the selection metric, overlaid."""
+  return os.path.join(stage_dir, f"seeds_{metric}.png")
+
+
 def features_dir(workdir: str, key: str) -> str:
   """The feature cache of one (encoder, dataset, dtype), named by its key (roboshape/train/cache.py)."""
   return os.path.join(workdir, "features", key)
 
 
-def policy_dir(workdir: str) -> str:
-  return os.path.join(workdir, "policy")
+def policy_dir(workdir: str, train_seed=None) -> str:
+  """<workdir>/policy/, or <workdir>/policy/seed_<s>/ for training seed s of `policy.train_seeds`."""
+  base = os.path.join(workdir, "policy")
+  return base if train_seed is None else os.path.join(base, f"seed_{int(train_seed)}")
+
+
+def train_seeds(config) -> tuple:
+  """The training seeds of a run's policies: config.policy.train_seeds, or (None,) when it is empty (one policy,
+  trained with config.seed, in <workdir>/policy/)."""
+  return tuple(int(s) for s in config.policy.get("train_seeds", ())) or (None,)
 
 
 def eval_dir(workdir: str) -> str:
@@ -98,3 +148,44 @@ def grid_run_dir(workdir: str, task: str, encoder: str) -> str:
 def grid_data_dir(config, workdir: str, task: str) -> str:
   """The data.dir of a grid's runs of `task`: the task's datasets, shared by its runs and collected once."""
   return os.path.join(data_root(config, workdir), task)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The stage log: <workdir>/stages.json, what each stage of a run did and how long it took (`roboshape.status`).
+
+STAGE_LOG = "stages.json"
+
+
+def stage_log_path(workdir: str) -> str:
+  return os.path.join(workdir, STAGE_LOG)
+
+
+def read_stage_log(workdir: str) -> dict:
+  """{stage: {state: "running" | "done", pid, started, finished, seconds}} of a run ({} when none ran yet).
+
+  `seconds` is the wall time of the stage's finished attempts, summed over resumes."""
+  path = stage_log_path(workdir)
+  if not os.path.exists(path):
+    return {}
+  try:
+    with open(path) as f:
+      log = json.load(f)
+  except (OSError, ValueError):
+    return {}
+  return log if isinstance(log, dict) else {}
+
+
+def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> None:
+  """Notes in the stage log that `stage` is now "running" (in this process) or "done" after `seconds` more."""
+  import datetime  # pylint: disable=import-outside-toplevel
+  log = read_stage_log(workdir)
+  entry = dict(log.get(stage, {}))
+  now = datetime.datetime.now().isoformat(timespec="seconds")
+  if state == "running":
+    entry.update(state="running", pid=os.getpid(), started=now)
+  else:
+    entry.update(state="done", finished=now, seconds=round(float(entry.get("seconds", 0.0)) + seconds, 1))
+    entry.pop("pid", None)
+  log[stage] = entry
+  os.makedirs(workdir, exist_ok=True)
+  fileio.atomic_write_json(stage_log_path(workdir), log)

@@ -97,6 +97,7 @@ def run_grid(config, workdir: str) -> None:
   A baseline (any encoder but SAVi) whose run raises `UserError` (e.g. its pretrained weights are absent) is
   recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
   prints it as a "skipped: <reason>" line. Every run's config and workdir are checked before the first one starts.
+  With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   """
   config_check.check(config)
   runs = list(grid_configs(config, workdir))
@@ -119,6 +120,10 @@ def run_grid(config, workdir: str) -> None:
       continue
     if os.path.exists(skipped):
       os.remove(skipped)
+    if config.grid.get("publish") and "evaluate" in sub.stages:
+      from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+      print(f"[roboshape] published {task} x {encoder} to {publish.publish(sub, sub_dir, config.grid.publish)}",
+            flush=True)
   if "report" in config.stages:
     importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
 
@@ -163,5 +168,7 @@ def run(config, workdir: str) -> None:
     runner = stage_runner(name, config)
     print(f"[roboshape] stage {name} -> {workdir}", flush=True)
     start = time.time()
+    rundir.record_stage(workdir, name, "running")
     runner(workdir)
+    rundir.record_stage(workdir, name, "done", time.time() - start)
     print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)

@@ -19,10 +19,14 @@ from matplotlib import pyplot as plt  # pylint: disable=wrong-import-position
 
 
 def label(path):
-  """The legend of a run: its file name, or its workdir's name for a <workdir>/savi/val_metrics.json."""
+  """The legend of a run: its file name, or its workdir's name for a <workdir>/savi/val_metrics.json (and the seed
+  for a <workdir>/savi/seed_<s>/val_metrics.json of savi.train.seeds)."""
   name = os.path.splitext(os.path.basename(path))[0]
   if name == "val_metrics":
-    return os.path.basename(os.path.dirname(os.path.dirname(os.path.abspath(path))))
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.basename(folder).startswith("seed_"):
+      return f"{os.path.basename(os.path.dirname(os.path.dirname(folder)))} {os.path.basename(folder)}"
+    return os.path.basename(os.path.dirname(folder))
   return name
 
 

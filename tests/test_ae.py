@@ -202,3 +202,31 @@ def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_p
   cached = cache.load_split(features, "val")
   length = len(episode["image"])
   np.testing.assert_allclose(cached["features"][:length], enc.encode_episode(episode["image"]), atol=1e-5)
+
+
+def test_seeds_train_one_ae_each_and_the_lowest_final_mse_is_served(tmp_path):
+  """savi.train.seeds for the AE: one run per seed in ae/seed_<s>/, the lowest final validation reconstruction MSE
+  selected (the evaluator's MSE replaced so the ranking is known) and served by the encoder."""
+  config = tiny_config()
+  config.savi.train.seeds = (0, 1)
+  workdir = str(tmp_path / "run")
+  rundir.save_config(config, workdir)
+  scores = {0: 0.3, 1: 0.1}
+
+  def make_validation(seed_config, root, model, episodes):
+    real = reconstruction.validation(seed_config, root, model, episodes)
+
+    def fake(params, step):
+      return dict(real.run(params, step), recon_mse=scores[seed_config.seed])
+
+    return pretrain.Validation(run=fake, keys=real.keys, describe=real.describe)
+
+  episodes = [{"image": clip(100)}, {"image": clip(101)}]
+  result = pretrain_ae.train_seeds(config, workdir, lambda seed_config: (Source(), episodes), make_validation)
+  root = rundir.ae_dir(workdir)
+  assert sorted(os.listdir(root)) == ["seed_0", "seed_1", "seeds_recon_mse.png", "selected.json"]
+  assert result["selected"] == 1 and result["selection"]["metric"] == "recon_mse"
+  assert not _tree_equal(result["runs"][0]["params"], result["runs"][1]["params"])
+  enc = ae_encoder.load_encoder(workdir)
+  assert f"{os.sep}ae{os.sep}seed_1{os.sep}checkpoints@{STEPS}" in enc.identity
+  assert _tree_equal(enc.params, result["runs"][1]["params"])

@@ -399,3 +399,47 @@ def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
   md = open(tmp_path / "report" / "report.md").read()
   assert "- skipped: DINO on push: DINO weights not found" in md
   assert "- skipped: SAVi on push: no evaluation results" in md
+
+
+def test_summary_over_training_seeds_pools_each_policys_evaluation_seeds():
+  def records(train_seed, successes):
+    return [dict(task="push", encoder="state", train_seed=train_seed, level="train", seed_index=i // 2, rollout=i % 2,
+                 seed=i, success=ok, length=5, ended="success" if ok else "horizon") for i, ok in enumerate(successes)]
+  # Policy 0: 3 of 4 rollouts over its two evaluation seeds; policy 1: 1 of 4.
+  (row,) = results_lib.summarize(records(0, [1, 1, 1, 0]) + records(1, [0, 1, 0, 0]))
+  assert row["over"] == "training seeds" and row["per_seed"] == [0.75, 0.25]
+  assert (row["mean"], row["std"], row["rollouts"], row["successes"]) == (0.5, 0.25, 8, 4)
+  (row,) = results_lib.summarize(records(0, [1, 1, 1, 0]))                 # one policy: over evaluation seeds
+  assert row["over"] == "evaluation seeds" and row["per_seed"] == [1.0, 0.5]
+
+
+def test_evaluate_each_training_seed_into_its_own_log_then_one_table(tmp_path):
+  config = _config(levels=("train",), num_seeds=2, rollouts=2)
+  config.policy.train_seeds = (0, 1)
+  workdir = str(tmp_path)
+  for i, seed in enumerate((0, 1)):
+    closed_loop.evaluate(config, workdir, FakePolicy(), lambda level: FakePool(), FakeWorkerError,
+                         fingerprint=f"policy{seed}", slot_videos=False, train_seed=seed,
+                         videos_per_level=1 if i == 0 else 0)
+  for seed in (0, 1):
+    logged = results_lib.read_log(closed_loop.log_path(workdir, seed))
+    assert len(logged) == 4 and {r["train_seed"] for r in logged} == {seed}
+  data = json.load(open(tmp_path / "eval" / "results.json"))
+  assert len(data["rollouts"]) == 8
+  (row,) = data["summary"]
+  rate = np.mean([ok for ok, _ in _expected(config).values()])
+  assert row["over"] == "training seeds" and row["per_seed"] == [rate, rate] and row["std"] == 0.0
+  assert "over 2 training seed(s)" in open(tmp_path / "eval" / "table.md").read()
+  with open(tmp_path / "eval" / "results.csv") as f:
+    assert {r["train_seed"] for r in csv.DictReader(f)} == {"0", "1"}
+  assert len(os.listdir(tmp_path / "eval" / "videos")) >= 1
+  assert all("s1000_" in name for name in os.listdir(tmp_path / "eval" / "videos"))   # the first policy's only
+
+
+def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
+  small = reproduce.get_config("small")
+  assert small.grid.publish == "results/small" and reproduce.get_config("tiny").grid.publish == ""
+  assert set(small.grid.tasks) == set(common.TASKS) and {"savi", "ae", "objects", "state"} <= set(small.grid.encoders)
+  seeds = {(task, enc): tuple(sub.policy.train_seeds) for task, enc, sub, _ in stages.grid_configs(small, "/w")}
+  assert seeds[("push", "state")] == (0, 1, 2) and seeds[("pick", "savi")] == ()
+  assert tuple(small.savi.train.seeds) == (0, 1, 2) and tuple(reproduce.get_config("tiny").savi.train.seeds) == ()

@@ -3,7 +3,7 @@
 A module may import its own layer or the layers below it, never one above:
 
   9  benchmarks/, scripts/
-  8  stages, cli, launch.py, the package's entry points (roboshape/__init__.py), configs/
+  8  stages, status, cli, launch.py, the package's entry points (roboshape/__init__.py), configs/
   7  grid, config_check      the runs of a grid config; the check of a whole config before any stage runs
   6  eval                    evaluators, closed loop, tables, report
   5  train                   pretraining, behaviour cloning, the feature cache
@@ -33,7 +33,7 @@ LAYERS = {
     "roboshape.train": 5,
     "roboshape.eval": 6,
     "roboshape.grid": 7, "roboshape.config_check": 7,
-    "roboshape.stages": 8, "roboshape.cli": 8, "roboshape": 8, "launch": 8, "configs": 8,
+    "roboshape.stages": 8, "roboshape.status": 8, "roboshape.cli": 8, "roboshape": 8, "launch": 8, "configs": 8,
     "benchmarks": 9, "scripts": 9,
 }
 SCANNED = ("roboshape", "configs", "benchmarks", "scripts", "launch.py")

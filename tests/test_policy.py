@@ -13,6 +13,7 @@ import scipy.stats
 from configs import common
 from roboshape import data as data_lib
 from roboshape import encoders
+from roboshape import rundir
 from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.models.encoder import FrozenEncoder
@@ -250,3 +251,22 @@ def test_temporal_ensembling_of_chunks():
     weights = np.array([np.exp(decay * j) for j in ages])
     expected = sum(wj * chunks[t - j][j] for wj, j in zip(weights, ages)) / weights.sum()
     np.testing.assert_allclose(actions[t], expected, atol=1e-5)
+
+
+def test_training_seeds_train_one_policy_each_and_resume_skips(run, monkeypatch, capsys):
+  monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: run["encoder"])
+  config = _config(steps=20)
+  config.policy.train_seeds = (3, 4)
+  bc.run(config, run["workdir"])                             # the cache is there: trains the two policies
+  params = {}
+  for seed in (3, 4):
+    out = rundir.policy_dir(run["workdir"], seed)
+    assert out == os.path.join(run["workdir"], "policy", f"seed_{seed}")
+    assert os.path.isfile(os.path.join(out, bc.SUMMARY_FILE)) and os.path.isfile(os.path.join(out, "encoder.json"))
+    params[seed] = bc.load_params(config, run["workdir"], K, D, train_seed=seed)[1]
+  assert any(not np.allclose(a, b) for a, b in zip(*(jax.tree.leaves(p) for p in params.values())))
+  capsys.readouterr()
+  bc.run(config, run["workdir"])
+  out = capsys.readouterr().out
+  assert "training seed 3: already trained" in out and "training seed 4: already trained" in out
+  assert "train_policy:" not in out

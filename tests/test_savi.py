@@ -3,7 +3,9 @@
 segmentation ids are known: 16x16 frames, K = 3 slots of size 16."""
 import functools
 import itertools
+import json
 import os
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -87,13 +89,14 @@ def _fast_compile():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-  """A tiny SAVi overfitted on one clip (STEPS steps), with its workdir."""
+  """A tiny SAVi overfitted on one clip (STEPS steps), with its workdir: trained as the pretrain stage does, with
+  savi.train.seeds = () (one run with config.seed)."""
   config = tiny_config()
   workdir = str(tmp_path_factory.mktemp("savi_run"))
   rundir.save_config(config, workdir)
   episodes = [synthetic_episode(1), synthetic_episode(2)]
   source = Source(episodes[0]["image"])
-  result = pretrain.train(config, workdir, source, episodes, slot_eval.validation)
+  result = pretrain.train_seeds(config, workdir, lambda c: (source, episodes), slot_eval.validation)
   comp = pretrain.compiled(config)
   return {"config": config, "workdir": workdir, "result": result, "episodes": episodes, "source": source,
           "comp": comp, "decompose": functools.partial(savi.decompose, comp.model)}
@@ -484,3 +487,151 @@ def test_per_frame_fg_ari_forgives_slots_that_swap_objects_between_frames():
   result = slot_eval.evaluate(oracle, None, [episode], tiny_config().savi.eval)
   assert result["fg_ari_frames"] == pytest.approx(1.0)
   assert result["fg_ari"] < 0.1 and result["recon_mse"] == pytest.approx(0.0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# savi.train.seeds: one run per seed, the best final validation FG-ARI served.
+
+SEEDS = (3, 1)
+FAKE_FG_ARI = {3: 0.5, 1: 0.2}     # the evaluator's FG-ARI, replaced so that the ranking is known: seed 3 wins
+
+
+def fake_validation(scores):
+  """make_validation: SAVi's real validation (figures, mIoU, ...) with FG-ARI set to scores[seed of the run]."""
+  def make(config, root, model, episodes):
+    real = slot_eval.validation(config, root, model, episodes)
+    return pretrain.Validation(run=lambda params, step: dict(real.run(params, step), fg_ari=scores[config.seed]),
+                               keys=real.keys, describe=real.describe, ylim=real.ylim)
+  return make
+
+
+def run_seeds(config, workdir, episodes, scores=FAKE_FG_ARI, fail_at=None):
+  """The pretrain stage's training of `config`'s seeds on the one clip; returns (result, {seed: its Source})."""
+  sources = {}
+
+  def source(seed_config):
+    sources[seed_config.seed] = Source(episodes[0]["image"], fail_at=fail_at)
+    return sources[seed_config.seed], episodes
+
+  return pretrain.train_seeds(config, workdir, source, fake_validation(scores)), sources
+
+
+@pytest.fixture(scope="module")
+def seeded(tmp_path_factory, trained):
+  """SAVi trained with savi.train.seeds = SEEDS in a workdir of its own."""
+  config = tiny_config()
+  config.savi.train.seeds = SEEDS
+  workdir = str(tmp_path_factory.mktemp("savi_seeds"))
+  rundir.save_config(config, workdir)
+  result, sources = run_seeds(config, workdir, trained["episodes"])
+  return {"config": config, "workdir": workdir, "result": result, "sources": sources}
+
+
+def test_no_seeds_keeps_the_single_run_layout(trained, encoder):
+  root = rundir.savi_dir(trained["workdir"])
+  assert sorted(os.listdir(root)) == ["checkpoints", "figures", "tb", "val_metrics.json", "val_metrics.png"]
+  assert trained["result"]["step"] == STEPS and "runs" not in trained["result"]
+  assert encoder.identity == f"savi:{os.path.abspath(rundir.checkpoints(root))}@{STEPS}"
+
+
+def test_each_seed_trains_in_its_own_folder_with_its_own_params(seeded):
+  root = rundir.savi_dir(seeded["workdir"])
+  assert sorted(os.listdir(root)) == ["seed_1", "seed_3", "seeds_fg_ari.png", "selected.json"]
+  runs = seeded["result"]["runs"]
+  assert list(runs) == list(SEEDS)
+  for seed in SEEDS:
+    folder = rundir.seed_dir(root, seed)
+    assert os.path.isfile(os.path.join(folder, "figures", f"step_{STEPS:07d}.png"))
+    assert os.path.isfile(os.path.join(folder, "val_metrics.png"))
+    (entry,) = history_lib.load(folder, "val_metrics")
+    assert entry["step"] == STEPS and entry["fg_ari"] == FAKE_FG_ARI[seed] and 0 <= entry["miou"] <= 1
+    with Checkpointer(rundir.checkpoints(folder)) as ckpt:
+      assert ckpt.latest_step() == STEPS
+    assert runs[seed]["step"] == STEPS and seeded["sources"][seed].served == list(range(STEPS))
+  assert not _tree_equal(runs[3]["params"], runs[1]["params"])          # another init for another seed
+  assert os.path.getsize(rundir.seeds_figure(root, "fg_ari")) > 1000
+
+
+def test_the_seed_with_the_best_final_fg_ari_is_selected(seeded):
+  assert seeded["result"]["selected"] == 3
+  with open(rundir.selection_path(rundir.savi_dir(seeded["workdir"]))) as f:
+    selection = json.load(f)
+  assert selection["selected_seed"] == 3 and selection["metric"] == "fg_ari" and selection["higher_is_better"]
+  assert [(r["seed"], r["step"], r["fg_ari"]) for r in selection["seeds"]] == [(3, STEPS, 0.5), (1, STEPS, 0.2)]
+  assert all(0 <= r["miou"] <= 1 for r in selection["seeds"])
+
+
+def test_a_finished_seed_stage_retrains_nothing(seeded):
+  result, sources = run_seeds(seeded["config"], seeded["workdir"], [synthetic_episode(1), synthetic_episode(2)],
+                              fail_at=0)
+  assert all(not s.served for s in sources.values()) and sorted(sources) == sorted(SEEDS)
+  assert result["selected"] == 3 and result["selection"] == seeded["result"]["selection"]
+  for seed in SEEDS:
+    assert _tree_equal(result["runs"][seed]["params"], seeded["result"]["runs"][seed]["params"])
+
+
+def test_the_encoder_served_is_the_selected_seeds_and_follows_the_selection(seeded, tmp_path):
+  encoder = savi_encoder.load_encoder(seeded["workdir"])
+  assert _tree_equal(encoder.params, seeded["result"]["runs"][3]["params"])
+  assert f"{os.sep}savi{os.sep}seed_3{os.sep}checkpoints@{STEPS}" in encoder.identity
+  _, params, step = savi_encoder.load(seeded["workdir"])
+  assert step == STEPS and _tree_equal(params, encoder.params)
+  # Seed 1's final FG-ARI rises above seed 3's; the stage, run again, trains nothing and selects seed 1 instead.
+  workdir = str(tmp_path / "run")
+  shutil.copytree(seeded["workdir"], workdir)
+  before = savi_encoder.load_encoder(workdir).identity
+  folder = rundir.seed_dir(rundir.savi_dir(workdir), 1)
+  history = history_lib.load(folder, "val_metrics")
+  history[-1]["fg_ari"] = 0.9
+  with open(os.path.join(folder, "val_metrics.json"), "w") as f:
+    json.dump(history, f)
+  result, sources = run_seeds(seeded["config"], workdir, [synthetic_episode(1)], fail_at=0)
+  assert result["selected"] == 1 and not any(s.served for s in sources.values())
+  after = savi_encoder.load_encoder(workdir)
+  assert after.identity != before and f"{os.sep}seed_1{os.sep}" in after.identity
+  assert _tree_equal(after.params, seeded["result"]["runs"][1]["params"])
+
+
+def test_a_missing_or_stale_selection_is_refused_with_one_line(seeded, tmp_path):
+  workdir = str(tmp_path / "run")
+  shutil.copytree(seeded["workdir"], workdir)
+  config = tiny_config()
+  config.savi.train.seeds = (3, 1, 5)                # a seed more than the selection was made among
+  rundir.save_config(config, workdir)
+  with pytest.raises(UserError, match=r"selected among seeds \(1, 3\).*run the pretrain stage again"):
+    savi_encoder.load_encoder(workdir)
+  os.remove(rundir.selection_path(rundir.savi_dir(workdir)))
+  with pytest.raises(UserError, match="no SAVi seed is selected yet"):
+    savi_encoder.load_encoder(workdir)
+
+
+def test_a_final_validation_lost_to_a_kill_is_redone_on_resume(seeded, tmp_path):
+  """Killed after its last checkpoint and before its last validation: the resumed stage validates that step
+  (without training) before it selects."""
+  workdir = str(tmp_path / "run")
+  shutil.copytree(seeded["workdir"], workdir)
+  folder = rundir.seed_dir(rundir.savi_dir(workdir), 1)
+  with open(os.path.join(folder, "val_metrics.json"), "w") as f:
+    json.dump([], f)
+  result, sources = run_seeds(seeded["config"], workdir, [synthetic_episode(1), synthetic_episode(2)], fail_at=0)
+  assert not any(s.served for s in sources.values())
+  assert [(h["step"], h["fg_ari"]) for h in history_lib.load(folder, "val_metrics")] == [(STEPS, 0.2)]
+  assert result["selected"] == 3
+
+
+def test_selection_takes_the_last_evaluation_ties_to_the_lower_seed_and_nan_last(tmp_path):
+  root = str(tmp_path)
+  config = tiny_config()
+  finals = {4: [(10, 0.9), (20, 0.4)], 2: [(10, 0.1), (20, 0.4)], 0: [(10, 0.3), (20, float("nan"))]}
+  for seed, entries in finals.items():
+    for step, ari in entries:
+      history_lib.record(rundir.seed_dir(root, seed), "val_metrics", step, {"fg_ari": ari, "recon_mse": ari}, step,
+                         keys=("fg_ari",))
+  steps = {seed: 20 for seed in finals}
+  chosen = pretrain.select_seed(config, root, steps, pretrain.SAVI_SELECTION, "SAVi")
+  assert chosen["selected_seed"] == 2                      # 4's 0.9 was not its last; 2 and 4 tie at 0.4; NaN last
+  assert rundir.load_selection(root) == chosen
+  lower = pretrain.select_seed(config, root, steps, pretrain.Selection("recon_mse", False, "MSE"), "AE")
+  assert lower["selected_seed"] == 2                       # lower is better: 2 and 4 tie at 0.4, NaN still last
+  with pytest.raises(UserError, match="seed 4 has no validation FG-ARI at its last step 30"):
+    pretrain.select_seed(config, root, {**steps, 4: 30}, pretrain.SAVI_SELECTION, "SAVi")

@@ -3,12 +3,18 @@ frozen from its checkpoint's params (no optimizer state is read).
 
   model, params, step = load(workdir)      # the SAVi module (roboshape/models/savi.py) and its newest params
   enc = load_encoder(workdir)              # a FrozenEncoder over K slots [B, K, D] per frame
+
+With savi.train.seeds = (s1, s2, ...) the SAVi served is the seed the pretrain stage selected
+(<workdir>/savi/selected.json, roboshape/train/pretrain.py), from <workdir>/savi/seed_<s>/checkpoints; the encoder's
+identity names that folder, so a new selection changes it and the feature caches and policies made with another
+seed are refused. With seeds = () it is <workdir>/savi/checkpoints, as before seeds existed.
 """
 import functools
 import os
 
 from roboshape import encoders
 from roboshape import rundir
+from roboshape.errors import UserError
 
 
 def abstract_params(model, resolution: int):
@@ -23,11 +29,32 @@ def abstract_params(model, resolution: int):
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), like)
 
 
+def trained_dir(config, workdir: str, stage_dir: str, title: str) -> str:
+  """The folder of the model a pretrain stage serves from `stage_dir` (savi_dir, ae_dir): stage_dir itself for
+  savi.train.seeds = () (or a config.json written before the field), else the folder of the seed its
+  selected.json names; a UserError saying to run the pretrain stage when there is no selection of these seeds."""
+  seeds = tuple(int(s) for s in config.savi.train.get("seeds", ()))
+  if not seeds:
+    return stage_dir
+  selection = rundir.load_selection(stage_dir)
+  command = f"python launch.py --config=configs/{config.name}.py --workdir={workdir}"
+  path = rundir.selection_path(stage_dir)
+  if selection is None:
+    raise UserError(f"no {title} seed is selected yet ({path} is missing): run the pretrain stage to train "
+                    f"savi.train.seeds={seeds} to the end ({command}).")
+  chosen_among = sorted(int(s["seed"]) for s in selection["seeds"])
+  if chosen_among != sorted(seeds):
+    raise UserError(f"{path} selected among seeds {tuple(chosen_among)}, the config trains savi.train.seeds="
+                    f"{seeds}: run the pretrain stage again ({command}).")
+  return rundir.seed_dir(stage_dir, int(selection["selected_seed"]))
+
+
 def restore(config, workdir: str, model, stage_dir: str, title: str):
-  """(params, step, checkpoint directory) of the newest checkpoint of `model` in <stage_dir>/checkpoints that
-  restores; a UserError saying how to make one when there is none."""
+  """(params, step, checkpoint directory) of the newest checkpoint of `model` in <trained_dir>/checkpoints that
+  restores (`trained_dir`: the selected seed's folder with savi.train.seeds); a UserError saying how to make one
+  when there is none."""
   from roboshape import checkpoint  # pylint: disable=import-outside-toplevel
-  directory = rundir.checkpoints(stage_dir)
+  directory = rundir.checkpoints(trained_dir(config, workdir, stage_dir, title))
   params, step = checkpoint.restore_params(
       directory, abstract_params(model, int(config.env.resolution)),
       f"no {title} checkpoint in {directory}; run the pretrain stage first "

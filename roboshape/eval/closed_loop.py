@@ -168,9 +168,9 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
   return x if len(x) == n else np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:], x.dtype)])
 
 
-def policy_fingerprint(workdir: str) -> str:
+def policy_fingerprint(workdir: str, train_seed=None) -> str:
   """Identifies the trained policy (its checkpoint steps and their times): results of another policy are stale."""
-  ckpt = rundir.checkpoints(rundir.policy_dir(workdir))
+  ckpt = rundir.checkpoints(rundir.policy_dir(workdir, train_seed))
   entries = sorted(os.listdir(ckpt)) if os.path.isdir(ckpt) else []
   text = ";".join(f"{e}:{int(os.path.getmtime(os.path.join(ckpt, e)))}" for e in entries)
   return hashlib.sha1(text.encode()).hexdigest()[:12]
@@ -220,16 +220,28 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
     f.write(tables.render_latex(
         cells, encoders, levels=levels, label=f"tab:{config.task}_{config.encoder}",
         caption=f"Success rate of \\textit{{{config.task}}} over the generalization scenarios "
-                f"(mean $\\pm$ std over {config.eval.num_seeds} seeds of {config.eval.rollouts_per_seed} rollouts)"))
+                f"(mean $\\pm$ std over {_over(summary, config)})"))
   plots.overall_bar_chart(summary, paths["png"], levels=levels,
                           title=f"{config.task}: success rate per level")
   return paths
 
 
+def _over(summary: Sequence[Dict], config) -> str:
+  if any(r.get("over") == "training seeds" for r in summary):
+    return f"{len(rundir.train_seeds(config))} training seeds, each on {config.eval.num_seeds} x " \
+           f"{config.eval.rollouts_per_seed} rollouts"
+  return f"{config.eval.num_seeds} seeds of {config.eval.rollouts_per_seed} rollouts"
+
+
 def notes(summary: Sequence[Dict], num_seeds: int, rollouts_per_seed: int) -> str:
   """The lines under a table: what a cell is, and rollouts lost to worker crashes."""
-  lines = [f"Mean ± std (ddof=0) over {num_seeds} evaluation seed(s) of {rollouts_per_seed} rollouts each; "
-           "\"none\" = the training distribution."]
+  if any(r.get("over") == "training seeds" for r in summary):
+    trained = max(len(r["per_seed"]) for r in summary)
+    lines = [f"Mean ± std (ddof=0) over {trained} training seed(s) of the policy, each evaluated on {num_seeds} "
+             f"evaluation seed(s) x {rollouts_per_seed} rollouts; \"none\" = the training distribution."]
+  else:
+    lines = [f"Mean ± std (ddof=0) over {num_seeds} evaluation seed(s) of {rollouts_per_seed} rollouts each; "
+             "\"none\" = the training distribution."]
   for r in summary:
     if r["crashed"]:
       lines.append(f"- {r['task']}/{tables.encoder_name(r['encoder'])}/{tables.level_name(r['level'])}: "
@@ -244,21 +256,35 @@ def run(config, workdir: str) -> None:
   from roboshape.train import bc
   rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                config.eval.seed_offset)     # bad settings fail before the policy loads
-  policy = bc.load_policy(workdir)
   make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
-  evaluate(config, workdir, policy, make_pool, SimWorkerError, policy_fingerprint(workdir))
+  for i, train_seed in enumerate(rundir.train_seeds(config)):
+    policy = bc.load_policy(workdir, train_seed=train_seed)
+    evaluate(config, workdir, policy, make_pool, SimWorkerError, policy_fingerprint(workdir, train_seed),
+             train_seed=train_seed, videos_per_level=config.eval.videos_per_level if i == 0 else 0)
+
+
+def log_path(workdir: str, train_seed=None) -> str:
+  """The rollout log of the run's policy (of training seed `train_seed` with policy.train_seeds)."""
+  name = "results.jsonl" if train_seed is None else f"results_seed_{int(train_seed)}.jsonl"
+  return os.path.join(rundir.eval_dir(workdir), name)
 
 
 def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], worker_error=Exception,
-             fingerprint: str = "", slot_videos: bool = True) -> Dict[str, str]:
-  """Runs the rollouts not yet in <workdir>/eval/results.jsonl, then writes all outputs; returns their paths.
+             fingerprint: str = "", slot_videos: bool = True, train_seed=None,
+             videos_per_level: Optional[int] = None) -> Dict[str, str]:
+  """Runs the rollouts not yet in the policy's log (`log_path`), then writes all outputs; returns their paths.
 
   `make_pool(level)` returns a context manager giving a pool (see `run_rollouts`); `fingerprint` identifies the
-  policy, so a log of another policy is set aside rather than resumed.
+  policy, so a log of another policy is set aside rather than resumed. With policy.train_seeds, `train_seed` names
+  the policy's seed: its rollouts carry it, and the outputs cover every training seed's log so far.
+  `videos_per_level`: rollouts recorded per level (default config.eval.videos_per_level).
   """
   plan = rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                       config.eval.seed_offset)
-  log = results_lib.ResultLog(os.path.join(rundir.eval_dir(workdir), "results.jsonl"), fingerprint)
+  log = results_lib.ResultLog(log_path(workdir, train_seed), fingerprint)
+  if videos_per_level is None:
+    videos_per_level = config.eval.videos_per_level
+  seed_field = {} if train_seed is None else dict(train_seed=int(train_seed))
   video_dir = rundir.videos_dir(workdir)
   videos.remove_partial(video_dir)       # left by a run killed while writing one
   slot_video = _slot_video_fn(config, workdir) if slot_videos else None
@@ -276,8 +302,8 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
         tqdm.write(f"[roboshape] SAVi slot video of {path} left out: {e}")
 
   def on_done(r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
-    log.append(dict(task=config.task, encoder=config.encoder, level=r.level, seed_index=r.seed_index,
-                    rollout=r.rollout, seed=r.seed, **result))
+    log.append(dict(task=config.task, encoder=config.encoder, **seed_field, level=r.level,
+                    seed_index=r.seed_index, rollout=r.rollout, seed=r.seed, **result))
     if frames is not None:
       write_videos(r, result, frames)
 
@@ -296,7 +322,7 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
     planned = [r for r in plan if r.level == level]
     todo = [r for r in planned if not log.done(r.level, r.seed)]
     done = [rec for rec in log.records if rec["level"] == level and rec["ended"] != "worker_crash"]
-    recorded = planned[:config.eval.videos_per_level]
+    recorded = planned[:videos_per_level]
     missing = [r for r in recorded if log.done(r.level, r.seed) and not _has_video(log, r, stem)]
     if not todo and not missing:
       print(f"[roboshape] evaluate {level}: all {len(planned)} rollouts already done", flush=True)
@@ -313,7 +339,11 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
         run_rollouts(pool, policy, missing, on_rerecorded, record=missing, max_retries=config.eval.max_retries,
                      worker_error=worker_error, desc=f"re-record videos {config.task}/{config.encoder}/{level}")
   keys = {(r.level, r.seed) for r in plan}
-  paths = write_outputs(config, workdir, [r for r in log.records if results_lib.key(r) in keys])
+  records = []
+  for seed in rundir.train_seeds(config):
+    logged = log.records if seed == train_seed else results_lib.read_log(log_path(workdir, seed))
+    records += [r for r in logged if results_lib.key(r) in keys]
+  paths = write_outputs(config, workdir, records)
   print(f"[roboshape] evaluation done in {time.time() - start:.0f}s: {os.path.abspath(paths['md'])}", flush=True)
   with open(paths["md"]) as f:
     print(f.read(), flush=True)

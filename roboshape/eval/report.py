@@ -65,6 +65,11 @@ def build_report(config, workdir: str) -> Dict[str, str]:
               + "; ".join(f"{s} seed(s) x {r} rollouts" for s, r in sorted(sizes, key=str))
               + ". \"none\" = the training distribution, L1 unseen distractor colours, L2 unseen background "
               "colours, L3 novel distractor sizes.")
+    by_training = sorted({f"{r['task']} x {tables.encoder_name(r['encoder'])}" for r in summary
+                          if r.get("over") == "training seeds"})
+    if by_training:
+      md.append(f"Cells of runs with several training seeds ({', '.join(by_training)}): mean ± std over the "
+                "training seeds of each policy's success rate on all its evaluation rollouts.")
     md.append("")
   for task in tasks:
     cells = tables.cells_from_summary(summary, task)

@@ -21,7 +21,7 @@ import numpy as np
 
 from roboshape import fileio
 
-CSV_FIELDS = ("task", "encoder", "level", "seed_index", "rollout", "seed", "success", "length", "ended")
+CSV_FIELDS = ("task", "encoder", "train_seed", "level", "seed_index", "rollout", "seed", "success", "length", "ended")
 
 
 def key(record: Dict) -> tuple:
@@ -57,6 +57,11 @@ class ResultLog:
     self._done.add(key(record))
 
 
+def read_log(path: str) -> List[Dict]:
+  """The records of a log as they are (none when it is missing), without checking whose policy made them."""
+  return _read_jsonl(path) if os.path.exists(path) else []
+
+
 def _read_jsonl(path: str) -> List[Dict]:
   records = []
   with open(path) as f:
@@ -72,14 +77,19 @@ def _read_jsonl(path: str) -> List[Dict]:
 
 
 def summarize(records: Iterable[Dict]) -> List[Dict]:
-  """One row per (task, encoder, level): mean and std over seeds of the per-seed success rate.
+  """One row per (task, encoder, level): the mean and std of the success rate over seeds.
 
-  Returns rows {task, encoder, level, mean, std, per_seed: [rate, ...], rollouts, successes, crashed,
-  mean_length}, ordered by task, encoder and level as first seen.
+  Over training seeds when the records come from policies of more than one (`train_seed`, policy.train_seeds):
+  each policy's rate pools its evaluation seeds' rollouts. Otherwise over evaluation seeds (`seed_index`).
+  Returns rows {task, encoder, level, mean, std, over: "training seeds" | "evaluation seeds", per_seed: [rate, ...],
+  rollouts, successes, crashed, mean_length}, ordered by task, encoder and level as first seen.
   """
+  records = list(records)
+  by_training = len({r.get("train_seed") for r in records}) > 1
+  field = "train_seed" if by_training else "seed_index"
   groups: Dict[tuple, Dict[int, List[Dict]]] = {}
   for r in records:
-    groups.setdefault((r["task"], r["encoder"], r["level"]), {}).setdefault(int(r["seed_index"]), []).append(r)
+    groups.setdefault((r["task"], r["encoder"], r["level"]), {}).setdefault(int(r[field]), []).append(r)
   rows = []
   for (task, encoder, level), seeds in groups.items():
     counted = {s: [r for r in rs if r["ended"] != "worker_crash"] for s, rs in sorted(seeds.items())}
@@ -89,6 +99,7 @@ def summarize(records: Iterable[Dict]) -> List[Dict]:
         task=task, encoder=encoder, level=level,
         mean=float(np.mean(per_seed)) if per_seed else None,
         std=float(np.std(per_seed)) if per_seed else None,
+        over="training seeds" if by_training else "evaluation seeds",
         per_seed=per_seed,
         rollouts=len(finished),
         successes=int(sum(bool(r["success"]) for r in finished)),

@@ -26,6 +26,8 @@ def write_run(config, workdir: str, seed: int = 0) -> str:
   from roboshape.train import pretrain
   if config.encoder != "savi":
     raise UserError(f"untrained runs exist for SAVi only, not {config.encoder!r}.")
+  config = config.copy_and_resolve_references()
+  config.savi.train.seeds = ()          # one SAVi, in savi/checkpoints: no seed to select among
   rundir.save_config(config, workdir)
   comp = pretrain.compiled(config)
   r = config.env.resolution

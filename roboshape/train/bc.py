@@ -212,13 +212,13 @@ def _portable(identity: str, workdir: str) -> str:
   return identity.replace(os.path.abspath(workdir), "<workdir>")
 
 
-def check_encoder(workdir: str, identity: str) -> None:
+def check_encoder(workdir: str, identity: str, train_seed=None) -> None:
   """Raises a one-line UserError when the policy in `workdir` was trained on another encoder than `identity`.
 
   <workdir>/policy/encoder.json records the encoder a policy was trained on (written by `train`); a run trained
   before it existed is not checked.
   """
-  out = rundir.policy_dir(workdir)
+  out = rundir.policy_dir(workdir, train_seed)
   path = os.path.join(out, ENCODER_FILE)
   if not os.path.exists(path):
     return
@@ -231,14 +231,14 @@ def check_encoder(workdir: str, identity: str) -> None:
                     "on the current encoder.")
 
 
-def _record_encoder(config, workdir: str, feature_path: str, resuming: bool) -> None:
+def _record_encoder(config, workdir: str, feature_path: str, resuming: bool, train_seed=None) -> None:
   """Checks the cached features' encoder against the one the policy was trained on, and records it when new."""
   manifest = cache.read_manifest(feature_path)
   if manifest is None:
     raise UserError(f"no complete feature cache in {feature_path} (no manifest.json): run the cache stage first.")
-  path = os.path.join(rundir.policy_dir(workdir), ENCODER_FILE)
+  path = os.path.join(rundir.policy_dir(workdir, train_seed), ENCODER_FILE)
   if resuming:
-    check_encoder(workdir, manifest["encoder_identity"])
+    check_encoder(workdir, manifest["encoder_identity"], train_seed)
     if os.path.exists(path):
       return
   fileio.atomic_write_json(path, dict(encoder=manifest.get("encoder", config.encoder),
@@ -252,28 +252,29 @@ def _trained(ckpt: Checkpointer, steps: int, summary_path: str) -> bool:
   return latest is not None and latest >= steps and os.path.exists(summary_path) and ckpt.restores(latest)
 
 
-def train(config, workdir: str, feature_path: str) -> dict:
+def train(config, workdir: str, feature_path: str, train_seed=None) -> dict:
   """Trains (or resumes) the policy on the features cached in `feature_path`; returns the final validation metrics.
 
   Resumes from the newest checkpoint that restores (a damaged newer one is set aside with a warning). A policy
   whose checkpoints were trained on another encoder than the features' is refused (`check_encoder`).
   """
-  out = rundir.policy_dir(workdir)
+  out = rundir.policy_dir(workdir, train_seed)
   os.makedirs(out, exist_ok=True)
   with Checkpointer(rundir.checkpoints(out), keep=2) as ckpt:
-    _record_encoder(config, workdir, feature_path, resuming=ckpt.latest_step() is not None)
+    _record_encoder(config, workdir, feature_path, resuming=ckpt.latest_step() is not None, train_seed=train_seed)
     summary_path = os.path.join(out, SUMMARY_FILE)
     if _trained(ckpt, config.policy.train.steps, summary_path):
       print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
       with open(summary_path) as f:
         return json.load(f)
-    summary = _fit(config, out, feature_path, ckpt)
+    summary = _fit(config, out, feature_path, ckpt, config.seed if train_seed is None else int(train_seed))
   fileio.atomic_write_json(summary_path, summary)
   return summary
 
 
-def _fit(config, out: str, feature_path: str, ckpt: Checkpointer) -> dict:
-  """The training loop of `train`, from the newest checkpoint in `ckpt` that restores; returns the summary."""
+def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> dict:
+  """The training loop of `train`, from the newest checkpoint in `ckpt` that restores; returns the summary.
+  `seed` draws the initial params, the dropout masks and the batches."""
   pc, tc = config.policy, config.policy.train
   train_data, val_data = cache.load_split(feature_path, "train"), cache.load_split(feature_path, "val")
   stats_path = os.path.join(out, NORM_STATS_FILE)
@@ -294,11 +295,11 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer) -> dict:
   net = policy_lib.net_from_config(pc)
   optimizer, schedule = make_optimizer(tc), make_schedule(tc)
   n, d = train_data["features"].shape[1:]
-  state = init_state(net, optimizer, (tc.batch_size, pc.history, n, d), config.seed)
+  state = init_state(net, optimizer, (tc.batch_size, pc.history, n, d), seed)
   state, _ = ckpt.resume(state)
   train_step, eval_step = make_train_step(net, optimizer), make_eval_step(net)
   start = int(state["step"])
-  base_rng = jax.random.PRNGKey(config.seed)
+  base_rng = jax.random.PRNGKey(seed)
   from tensorboardX import SummaryWriter  # pylint: disable=import-outside-toplevel
   writer = SummaryWriter(os.path.join(out, "tb"))
   metrics = None
@@ -306,7 +307,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer) -> dict:
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
   try:
     for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
-      batch = train_w.sample(tc.batch_size, config.seed, step)
+      batch = train_w.sample(tc.batch_size, seed, step)
       state, metrics = train_step(state, batch, base_rng)
       done = step + 1
       if done % tc.log_every == 0 or done == tc.steps:
@@ -335,33 +336,47 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer) -> dict:
 
 
 def run(config, workdir: str) -> None:
-  """The train_policy stage: caches the features if the cache stage has not, then trains.
+  """The train_policy stage: caches the features if the cache stage has not, then trains one policy per training
+  seed (`rundir.train_seeds`: config.policy.train_seeds, or one policy with config.seed).
 
   A policy trained on another encoder than the workdir's now (e.g. SAVi pretrained further since) is refused.
   """
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
   encoder = encoders.build_encoder(config, workdir)
-  check_encoder(workdir, encoder.identity)
-  ckpt_dir = rundir.checkpoints(rundir.policy_dir(workdir))
-  if os.path.isdir(ckpt_dir):
-    with Checkpointer(ckpt_dir) as ckpt:
-      if _trained(ckpt, config.policy.train.steps, os.path.join(rundir.policy_dir(workdir), SUMMARY_FILE)):
-        print(f"[train_policy] already trained to step {ckpt.latest_step()}: skipping", flush=True)
-        return
-  train(config, workdir, cache.build(config, workdir, encoder))
+  todo = []
+  for seed in rundir.train_seeds(config):
+    check_encoder(workdir, encoder.identity, seed)
+    out = rundir.policy_dir(workdir, seed)
+    if os.path.isdir(rundir.checkpoints(out)):
+      with Checkpointer(rundir.checkpoints(out)) as ckpt:
+        if _trained(ckpt, config.policy.train.steps, os.path.join(out, SUMMARY_FILE)):
+          print(f"[train_policy] {_seed_name(seed)}already trained to step {ckpt.latest_step()}: skipping",
+                flush=True)
+          continue
+    todo.append(seed)
+  if todo:
+    feature_path = cache.build(config, workdir, encoder)
+    for seed in todo:
+      print(f"[train_policy] {_seed_name(seed)}-> {rundir.policy_dir(workdir, seed)}", flush=True)
+      train(config, workdir, feature_path, seed)
+
+
+def _seed_name(seed) -> str:
+  return "" if seed is None else f"training seed {seed}: "
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Loading for closed-loop control.
 
 
-def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Optional[int] = None):
+def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Optional[int] = None,
+                train_seed=None):
   """(net, the trained trunk+head params) from <workdir>/policy/checkpoints (latest step by default): the params
   alone, restored without building an optimizer."""
   pc = config.policy
   net = policy_lib.net_from_config(pc)
   like = jax.eval_shape(functools.partial(init_params, net, (1, pc.history, num_tokens, token_dim), config.seed))
-  ckpt_dir = rundir.checkpoints(rundir.policy_dir(workdir))
+  ckpt_dir = rundir.checkpoints(rundir.policy_dir(workdir, train_seed))
   if not os.path.isdir(ckpt_dir):
     raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
   with Checkpointer(ckpt_dir) as ckpt:
@@ -372,7 +387,7 @@ def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Opt
 
 
 def load_policy(workdir: str, history: Optional[int] = None, action: Optional[str] = None,
-                step: Optional[int] = None, seed: int = 0) -> policy_lib.Policy:
+                step: Optional[int] = None, seed: int = 0, train_seed=None) -> policy_lib.Policy:
   """The closed-loop `Policy` of the run in `workdir` (roboshape/models/policy.py: reset, act, act_batch).
 
   Args:
@@ -381,13 +396,16 @@ def load_policy(workdir: str, history: Optional[int] = None, action: Optional[st
     action: "mean" or "sample" (default config.policy.eval.action).
     step: the checkpoint step (default: the latest).
     seed: the sampling seed (action="sample").
+    train_seed: which policy of a run with `policy.train_seeds` (default: its first; without: the one in policy/).
   """
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
   config = rundir.load_config(workdir)
+  if train_seed is None:
+    train_seed = rundir.train_seeds(config)[0]
   encoder = encoders.build_encoder(config, workdir)
-  check_encoder(workdir, encoder.identity)
-  net, params = load_params(config, workdir, encoder.num_tokens, encoder.token_dim, step)
-  with open(os.path.join(rundir.policy_dir(workdir), NORM_STATS_FILE)) as f:
+  check_encoder(workdir, encoder.identity, train_seed)
+  net, params = load_params(config, workdir, encoder.num_tokens, encoder.token_dim, step, train_seed)
+  with open(os.path.join(rundir.policy_dir(workdir, train_seed), NORM_STATS_FILE)) as f:
     stats = json.load(f)
   ev = config.policy.eval
   spec = policy_lib.ControlSpec(history=history or ev.history or config.policy.history,

@@ -74,3 +74,27 @@ def metric_curve(history: Sequence[Dict], keys: Sequence[str], path: str, title:
   fig.savefig(path)
   plt.close(fig)
   return path
+
+
+def overlay_curves(histories: Dict[str, Sequence[Dict]], key: str, path: str, title: str = "") -> str:
+  """Writes a PNG of one metric of several runs, one line per run ({label: history}, as `load` returns), to
+  `path`; returns `path` (e.g. every seed's FG-ARI, roboshape/train/pretrain.py)."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+
+  fig, ax = plt.subplots(figsize=(5.0, 3.2), dpi=150)
+  for label, history in histories.items():
+    ax.plot([h["step"] for h in history], [h.get(key, float("nan")) for h in history], marker="o", markersize=3,
+            label=label, linewidth=2.2 if "selected" in label else 1.2)
+  ax.set_xlabel("training step")
+  ax.set_ylabel(key)
+  ax.grid(alpha=0.3)
+  ax.spines[["top", "right"]].set_visible(False)
+  ax.legend(fontsize=7)
+  ax.set_title(title, fontsize=8)
+  fig.tight_layout()
+  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+  fig.savefig(path)
+  plt.close(fig)
+  return path

@@ -11,6 +11,14 @@ feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and the
 val_metrics.json and val_metrics.png (every validation result so far, across resumes, and its curve).
 A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint stays.
 
+Seeds (`train_seeds`, what the stage runs): with savi.train.seeds = () one run with config.seed writes the above
+into <workdir>/savi/ itself. With savi.train.seeds = (s1, s2, ...) each seed is a run of its own, with config.seed
+set to it (its initialisation and its data order), in <workdir>/savi/seed_<s>/ (the layout above, each resumed
+after a kill as one run is); once every seed is trained, the one with the best FINAL validation FG-ARI (the last
+evaluation in its val_metrics.json, the one at its last training step; ties: the lower seed; a NaN ranks last) is
+recorded in <workdir>/savi/selected.json with every seed's final metrics, and <workdir>/savi/seeds_fg_ari.png
+overlays every seed's FG-ARI curve. roboshape/encoders/savi.py serves the selected seed's checkpoint.
+
 Validation is not this module's: `train` and `run` take `make_validation(config, root, model, episodes) ->
 Validation`, which the stage wiring (roboshape/stages.py) takes from the encoder's evaluator (for SAVi
 roboshape/eval/slots.py: FG-ARI and mIoU of the slot masks, and the decomposition figures in figures/).
@@ -33,6 +41,7 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from roboshape import fileio
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
@@ -125,6 +134,14 @@ def config_from_json(text: str):
   return ml_collections.ConfigDict(json.loads(text))
 
 
+def model_json(config) -> str:
+  """config.savi as JSON without train.seeds (which runs to train, not how one trains): the cache key of the
+  compiled model and train step, the same for every seed."""
+  section = config.savi.to_dict()
+  section["train"].pop("seeds", None)
+  return json.dumps(section, sort_keys=True)
+
+
 @functools.lru_cache(maxsize=8)
 def _compiled_for(savi_json: str, resolution: int) -> Compiled:
   c = config_from_json(savi_json)
@@ -133,7 +150,7 @@ def _compiled_for(savi_json: str, resolution: int) -> Compiled:
 
 def compiled(config) -> Compiled:
   """The (cached) SAVi model and its jitted train step for `config.savi` at `config.env.resolution`."""
-  return _compiled_for(config.savi.to_json(sort_keys=True), int(config.env.resolution))
+  return _compiled_for(model_json(config), int(config.env.resolution))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,8 +175,9 @@ MakeValidation = Callable[[Any, str, Any, Sequence[Dict[str, np.ndarray]]], Vali
 
 def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str, np.ndarray]]],
           val_episodes: Sequence[Dict[str, np.ndarray]] = (),
-          make_validation: Optional[MakeValidation] = None) -> Dict[str, Any]:
-  """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <workdir>/savi/checkpoints.
+          make_validation: Optional[MakeValidation] = None, root: Optional[str] = None) -> Dict[str, Any]:
+  """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <root>/checkpoints (root:
+  <workdir>/savi when None; `train_seeds` gives each seed's folder).
 
   batches_from(start_batch) yields the batches from index start_batch on (dicts with video uint8 [B, L, H, W, 3]
   and episode_seed int [B], and depth uint16 [B, L, H, W] when savi.train.depth_weight > 0).
@@ -168,7 +186,7 @@ def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str,
   Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
   validate_config(config)
-  comp, root = compiled(config), rundir.savi_dir(workdir)
+  comp, root = compiled(config), root or rundir.savi_dir(workdir)
   validation = None
   if val_episodes and make_validation is not None:
     validation = make_validation(config, root, comp.model, val_episodes)
@@ -196,6 +214,10 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
       restored, start = ckpt.restore_latest(_abstract_state(comp, config), set_aside=True)
       if start >= tc.steps:
         print(f"[pretrain] already trained to step {start} >= savi.train.steps={tc.steps}; skipping.", flush=True)
+        if validation and not any(h["step"] == start for h in history_lib.load(root, "val_metrics")):
+          # killed after its last checkpoint, before its last validation: the final evaluation is still owed
+          evals.append((start, _validate(validation, restored["params"], start, root, config, title,
+                                         history_lib.seconds_at(root, "val_metrics", start))))
         return {"step": start, "params": restored["params"], "history": history, "eval": evals}
     key = jax.random.key(config.seed)
     state = jax.device_put(comp.init_state(jax.random.fold_in(key, 1), _clip_shape(config)), comp.replicated)
@@ -238,16 +260,25 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
         if done % tc.checkpoint_every == 0 or done == tc.steps:
           ckpt.save(done, state)
         if validation and (done % ec.every == 0 or done == tc.steps):
-          result = validation.run(state["params"], done)
-          for name, value in result.items():
-            writer.add_scalar(f"val/{name}", value, done)
-          evals.append((done, result))
-          history_lib.record(root, "val_metrics", done, result, seconds_before + time.perf_counter() - run_start,
-                             keys=validation.keys, title=f"{title} validation, {config.name}", ylim=validation.ylim)
-          tqdm.write(f"[pretrain] step {done}: {validation.describe(result)}")
+          evals.append((done, _validate(validation, state["params"], done, root, config, title,
+                                        seconds_before + time.perf_counter() - run_start, writer, tqdm.write)))
     finally:
       writer.close()
   return {"step": int(state["step"]), "params": state["params"], "history": history, "eval": evals}
+
+
+def _validate(validation: Validation, params, step: int, root: str, config, title: str, seconds: float,
+              writer=None, write=print) -> Dict[str, float]:
+  """Runs `validation` at `step`: its metrics to TensorBoard (when a writer is given) and <root>/val_metrics.json,
+  and one line to `write`; returns the metrics."""
+  result = validation.run(params, step)
+  if writer is not None:
+    for name, value in result.items():
+      writer.add_scalar(f"val/{name}", value, step)
+  history_lib.record(root, "val_metrics", step, result, seconds, keys=validation.keys,
+                     title=f"{title} validation, {config.name}", ylim=validation.ylim)
+  write(f"[pretrain] step {step}: {validation.describe(result)}")
+  return result
 
 
 def _clip_shape(config):
@@ -282,7 +313,115 @@ def data_source(config, workdir: str):
   return batches_from, list(itertools.islice(reader.read_episodes(path, "val"), config.savi.eval.episodes))
 
 
+# ----------------------------------------------------------------------------------------------------------------
+# Seeds: one run per seed of savi.train.seeds, the best by its final validation served.
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+  """How `train_seeds` ranks the seeds: by `metric` of each seed's final validation, higher or lower better."""
+  metric: str
+  higher_is_better: bool
+  name: str                      # the metric in messages and the figure ("FG-ARI")
+
+
+SAVI_SELECTION = Selection("fg_ari", True, "FG-ARI")
+
+# source(config) -> (batches_from, val_episodes) of `config`'s seed (its data order): as `data_source`.
+Source = Callable[[Any], Tuple[Callable[[int], Iterator[Dict[str, np.ndarray]]], Sequence[Dict[str, np.ndarray]]]]
+# train_one(config, root) -> `fit`'s result: one run, with config.seed, into the folder root.
+TrainOne = Callable[[Any, str], Dict[str, Any]]
+
+
+def seeds_of(config) -> Tuple[int, ...]:
+  """config.savi.train.seeds as a tuple of ints (() for a config written before the field existed)."""
+  return tuple(int(s) for s in config.savi.train.get("seeds", ()))
+
+
+def with_seed(config, seed: int):
+  """A copy of `config` with config.seed = `seed` (what one seed's run trains with)."""
+  seeded = config.copy_and_resolve_references()
+  seeded.seed = int(seed)
+  return seeded
+
+
+def train_seeds(config, workdir: str, source: Source, make_validation: Optional[MakeValidation] = None
+                ) -> Dict[str, Any]:
+  """The pretrain stage's training: SAVi as `train` does, once per seed of savi.train.seeds (see the module's
+  docstring), the best by final validation FG-ARI selected. source(seed_config) gives each seed its data.
+
+  Returns `train`'s result for seeds = (); else {"selected": seed, "selection": selected.json's dict,
+  "runs": {seed: `train`'s result}}.
+  """
+  def train_one(seed_config, root):
+    return train(seed_config, workdir, *source(seed_config), make_validation=make_validation, root=root)
+  return seeds_loop(config, rundir.savi_dir(workdir), train_one, SAVI_SELECTION, "SAVi")
+
+
+def seeds_loop(config, stage_dir: str, train_one: TrainOne, selection: Selection, title: str) -> Dict[str, Any]:
+  """Runs train_one(config, stage_dir) for savi.train.seeds = (); else train_one(with_seed(config, s),
+  <stage_dir>/seed_<s>) for each seed s in turn (each resumes or skips as `fit` does), then `select_seed`.
+
+  selected.json is removed before any seed trains and written once all are trained, so it always names a seed
+  whose run is finished (a run killed in between serves no encoder until the stage is run again).
+  """
+  seeds = seeds_of(config)
+  if not seeds:
+    return train_one(config, stage_dir)
+  path = rundir.selection_path(stage_dir)
+  if os.path.exists(path):
+    os.remove(path)
+  runs = {}
+  for seed in seeds:
+    print(f"[pretrain] {title} seed {seed} of {seeds} -> {rundir.seed_dir(stage_dir, seed)}", flush=True)
+    runs[seed] = train_one(with_seed(config, seed), rundir.seed_dir(stage_dir, seed))
+  chosen = select_seed(config, stage_dir, {s: r["step"] for s, r in runs.items()}, selection, title)
+  return {"selected": chosen["selected_seed"], "selection": chosen, "runs": runs}
+
+
+def select_seed(config, stage_dir: str, steps: Dict[int, int], selection: Selection, title: str) -> Dict[str, Any]:
+  """Selects among the trained seeds (`steps`: seed -> the step its run ended at) by each one's final validation
+  (the last entry of <stage_dir>/seed_<s>/val_metrics.json, which must be at that step): the best
+  `selection.metric`, ties to the lower seed, NaN last. Writes <stage_dir>/selected.json and the curves'
+  figure <stage_dir>/seeds_<metric>.png; returns the selection: {"selected_seed", "metric", "higher_is_better",
+  "seeds": [{"seed", "step", "train_seconds", <every validation metric>}, ...]} in the config's seed order."""
+  records, curves = [], {}
+  for seed, step in steps.items():
+    history = history_lib.load(rundir.seed_dir(stage_dir, seed), "val_metrics")
+    if not history or history[-1]["step"] != step or selection.metric not in history[-1]:
+      if len(steps) == 1:
+        records.append({"seed": seed, "step": step})
+        continue
+      raise UserError(
+          f"{title} seed {seed} has no validation {selection.name} at its last step {step} in "
+          f"{rundir.seed_dir(stage_dir, seed)}/val_metrics.json, so savi.train.seeds={tuple(steps)} cannot be "
+          "ranked: give the run validation episodes (savi.eval.episodes >= 1, a dataset with a val split).")
+    records.append({"seed": seed, **history[-1]})
+    curves[seed] = history
+
+  def rank(record):
+    value = float(record.get(selection.metric, float("nan")))
+    if not np.isfinite(value):
+      return (1, 0.0, record["seed"])
+    return (0, -value if selection.higher_is_better else value, record["seed"])
+
+  best = min(records, key=rank)["seed"]
+  chosen = {"selected_seed": best, "metric": selection.metric, "higher_is_better": selection.higher_is_better,
+            "seeds": records}
+  os.makedirs(stage_dir, exist_ok=True)
+  fileio.atomic_write_json(rundir.selection_path(stage_dir), chosen)
+  if curves:
+    history_lib.overlay_curves({f"seed {s}" + (" (selected)" if s == best else ""): h for s, h in curves.items()},
+                               selection.metric, rundir.seeds_figure(stage_dir, selection.metric),
+                               title=f"{title} validation {selection.name} per seed, {config.name}")
+  summary = ", ".join(f"seed {r['seed']}: {r.get(selection.metric, float('nan')):.3f}" for r in records)
+  print(f"[pretrain] {title} final validation {selection.name}: {summary}; selected seed {best} "
+        f"({rundir.selection_path(stage_dir)})", flush=True)
+  return chosen
+
+
 def run(config, workdir: str, make_validation: Optional[MakeValidation] = None) -> None:
-  """The pretrain stage: trains SAVi on the dataset of `config` (roboshape.data) to config.savi.train.steps,
-  validated by `make_validation` (roboshape/stages.py passes the encoder's evaluator)."""
-  train(config, workdir, *data_source(config, workdir), make_validation=make_validation)
+  """The pretrain stage: trains SAVi on the dataset of `config` (roboshape.data) to config.savi.train.steps, once
+  per seed of savi.train.seeds (`train_seeds`), validated by `make_validation` (roboshape/stages.py passes the
+  encoder's evaluator)."""
+  train_seeds(config, workdir, lambda seed_config: data_source(seed_config, workdir), make_validation)

@@ -1,0 +1,101 @@
+"""Which runs of a workdir are done, running or pending, and how long each stage took.
+
+  python -m roboshape.status WORKDIR          # a grid's workdir (configs/reproduce.py) or one run's
+
+Reads the workdir's config.json and each run's stage log (<run>/stages.json, written by roboshape/stages.py). A run
+is "done" when every stage it runs is done, "running" while a live process runs one of its stages, "stopped" when
+the process that ran a stage is gone before it finished (run the same command to resume), "skipped" when the grid
+skipped it (SKIPPED.json: a baseline without weights), and "pending" before any stage started.
+"""
+import os
+import sys
+from typing import Dict, List
+
+from roboshape import grid
+from roboshape import rundir
+from roboshape.errors import UserError
+
+
+def _alive(pid) -> bool:
+  try:
+    os.kill(int(pid), 0)
+  except (OSError, TypeError, ValueError):
+    return False
+  return True
+
+
+def run_status(stages, run_dir: str) -> Dict:
+  """{state, stages: {stage: seconds or state}, seconds} of one run whose config runs `stages`."""
+  if os.path.exists(os.path.join(run_dir, rundir.SKIPPED_FILE)):
+    return dict(state="skipped", stages={}, seconds=0.0)
+  log = rundir.read_stage_log(run_dir)
+  per_stage, states = {}, []
+  for stage in stages:
+    entry = log.get(stage, {})
+    if entry.get("state") == "done":
+      state = "done"
+    elif entry.get("state") == "running":
+      state = "running" if _alive(entry.get("pid")) else "stopped"
+    else:
+      state = "pending"
+    states.append(state)
+    per_stage[stage] = entry.get("seconds") if state == "done" else state
+  if all(s == "done" for s in states):
+    state = "done"
+  elif "running" in states:
+    state = "running"
+  elif "stopped" in states or "done" in states:
+    state = "stopped"
+  else:
+    state = "pending"
+  seconds = sum(float(entry.get("seconds", 0.0)) for entry in log.values() if isinstance(entry, dict))
+  return dict(state=state, stages=per_stage, seconds=seconds)
+
+
+def workdir_status(workdir: str) -> List[Dict]:
+  """One row per run of the workdir: task, encoder, run_dir and `run_status`'s fields."""
+  config = rundir.load_config(workdir)
+  if "grid" in config:
+    runs = [(t, e, sub.stages, d) for t, e, sub, d in grid.grid_configs(config, workdir)]
+  else:
+    runs = [(config.task, config.encoder, config.stages, workdir)]
+  return [dict(task=t, encoder=e, run_dir=d, **run_status(tuple(stages), d)) for t, e, stages, d in runs]
+
+
+def _duration(seconds) -> str:
+  if not isinstance(seconds, (int, float)):
+    return str(seconds)
+  minutes, s = divmod(int(round(seconds)), 60)
+  return f"{minutes // 60}h{minutes % 60:02d}m" if minutes >= 60 else f"{minutes}m{s:02d}s"
+
+
+def render(rows: List[Dict]) -> str:
+  """A markdown table: one line per run, its state, each stage's wall time (or state) and the total."""
+  stages = [s for s in rundir.STAGES if any(s in r["stages"] for r in rows)]
+  lines = ["| task | encoder | state | " + " | ".join(stages) + " | total |",
+           "| --- | --- | --- | " + " | ".join("---" for _ in stages) + " | --- |"]
+  for r in rows:
+    cells = [_duration(r["stages"][s]) if s in r["stages"] else "" for s in stages]
+    lines.append(f"| {r['task']} | {r['encoder']} | {r['state']} | " + " | ".join(cells)
+                 + f" | {_duration(r['seconds'])} |")
+  counts = {}
+  for r in rows:
+    counts[r["state"]] = counts.get(r["state"], 0) + 1
+  lines += ["", ", ".join(f"{n} {state}" for state, n in sorted(counts.items())) + f" of {len(rows)} run(s)"]
+  return "\n".join(lines)
+
+
+def main(argv) -> int:
+  if len(argv) != 2 or argv[1].startswith("-"):
+    print("usage: python -m roboshape.status WORKDIR", file=sys.stderr)
+    return 2
+  try:
+    print(render(workdir_status(argv[1])))
+  except UserError as e:
+    print(f"roboshape: error: {e}", file=sys.stderr)
+    return 2
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv))

@@ -1,0 +1,138 @@
+"""The stage log, `python -m roboshape.status` and publishing a finished run's results (roboshape/eval/publish.py)."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from configs import common
+from roboshape import rundir
+from roboshape import status
+from roboshape.errors import UserError
+from roboshape.eval import publish
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _dead_pid() -> int:
+  proc = subprocess.Popen([sys.executable, "-c", "pass"])
+  proc.wait()
+  return proc.pid
+
+
+def test_the_stage_log_sums_the_seconds_of_resumed_attempts(tmp_path):
+  workdir = str(tmp_path)
+  assert rundir.read_stage_log(workdir) == {}
+  rundir.record_stage(workdir, "collect", "running")
+  entry = rundir.read_stage_log(workdir)["collect"]
+  assert entry["state"] == "running" and entry["pid"] == os.getpid()
+  rundir.record_stage(workdir, "collect", "done", 12.04)
+  rundir.record_stage(workdir, "collect", "running")      # resumed: it was done, runs again (and skips its work)
+  rundir.record_stage(workdir, "collect", "done", 0.5)
+  entry = rundir.read_stage_log(workdir)["collect"]
+  assert entry["state"] == "done" and entry["seconds"] == pytest.approx(12.5) and "pid" not in entry
+
+
+def _grid_workdir(tmp_path):
+  config = common.get_config("push", "state", "tiny")
+  config.grid = dict(tasks=("push", "pick"), encoders=("state", "objects"), publish="")
+  workdir = str(tmp_path / "grid")
+  rundir.save_config(config, workdir)
+  return config, workdir
+
+
+def test_status_of_a_grid_says_done_running_stopped_skipped_and_pending(tmp_path):
+  config, workdir = _grid_workdir(tmp_path)
+  stages = [s for s in config.stages if s != "report"]
+  done = rundir.grid_run_dir(workdir, "push", "state")
+  for i, stage in enumerate(stages):
+    rundir.record_stage(done, stage, "running")
+    rundir.record_stage(done, stage, "done", 60.0 * (i + 1))
+  running = rundir.grid_run_dir(workdir, "push", "objects")
+  rundir.record_stage(running, "collect", "done", 5.0)
+  rundir.record_stage(running, "cache", "running")                    # this process: alive
+  stopped = rundir.grid_run_dir(workdir, "pick", "state")
+  rundir.record_stage(stopped, "collect", "running")
+  log = rundir.read_stage_log(stopped)
+  log["collect"]["pid"] = _dead_pid()                                  # killed mid-stage
+  with open(rundir.stage_log_path(stopped), "w") as f:
+    json.dump(log, f)
+  skipped = rundir.grid_run_dir(workdir, "pick", "objects")
+  os.makedirs(skipped)
+  with open(os.path.join(skipped, rundir.SKIPPED_FILE), "w") as f:
+    json.dump({"reason": "no weights"}, f)
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  assert {k: r["state"] for k, r in rows.items()} == {
+      ("push", "state"): "done", ("push", "objects"): "running", ("pick", "state"): "stopped",
+      ("pick", "objects"): "skipped"}
+  assert rows[("push", "state")]["seconds"] == pytest.approx(60.0 * sum(range(1, len(stages) + 1)))
+  assert rows[("push", "objects")]["stages"]["cache"] == "running"
+  assert rows[("push", "objects")]["stages"]["train_policy"] == "pending"
+  text = status.render(list(rows.values()))
+  assert "| push | state | done | 1m00s | 2m00s |" in text
+  assert "1 done, 1 running, 1 skipped, 1 stopped of 4 run(s)" in text
+  # A run none of whose stages started is pending.
+  os.remove(rundir.stage_log_path(stopped))
+  assert {r["state"] for r in status.workdir_status(workdir) if r["task"] == "pick"} == {"pending", "skipped"}
+
+
+def test_status_command_prints_the_table_and_refuses_a_folder_without_a_run(tmp_path):
+  _, workdir = _grid_workdir(tmp_path)
+  env = dict(os.environ, JAX_PLATFORMS="cpu")
+  out = subprocess.run([sys.executable, "-m", "roboshape.status", workdir], cwd=ROOT, env=env,
+                       capture_output=True, text=True, check=False)
+  assert out.returncode == 0, out.stderr
+  assert "| push | state | pending |" in out.stdout and "4 pending of 4 run(s)" in out.stdout
+  bad = subprocess.run([sys.executable, "-m", "roboshape.status", str(tmp_path / "nothing")], cwd=ROOT, env=env,
+                       capture_output=True, text=True, check=False)
+  assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "config.json not found" in bad.stderr
+
+
+def _finished_run(tmp_path, encoder="savi"):
+  config = common.get_config("push", encoder, "tiny")
+  workdir = str(tmp_path / "run")
+  rundir.save_config(config, workdir)
+  rundir.record_stage(workdir, "collect", "done", 3.0)
+  files = {os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE): "{}",
+           os.path.join(rundir.eval_dir(workdir), "results.csv"): "level,success\ntrain,1\n",
+           os.path.join(rundir.eval_dir(workdir), "table.md"): "| table |",
+           os.path.join(rundir.policy_dir(workdir), "val_metrics.json"): "[]",
+           os.path.join(rundir.savi_dir(workdir), "val_metrics.json"): "[1]",
+           os.path.join(rundir.videos_dir(workdir), "train_s1_success.mp4"): "mp4",
+           os.path.join(rundir.videos_dir(workdir), "train_s1_success.gif"): "gif"}
+  for path, text in files.items():
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w") as f:
+      f.write(text)
+  return config, workdir
+
+
+def test_publish_copies_the_results_under_fixed_names_and_keeps_one_run(tmp_path):
+  config, workdir = _finished_run(tmp_path)
+  dest_root = str(tmp_path / "results")
+  stale = os.path.join(dest_root, "push_savi", "videos", "L1_s9_failure.mp4")
+  os.makedirs(os.path.dirname(stale))
+  for path in (stale, os.path.join(dest_root, "push_savi", "README.md")):
+    with open(path, "w") as f:
+      f.write("earlier")
+  dest = publish.publish(config, workdir, dest_root)
+  assert dest == os.path.join(dest_root, "push_savi")
+  found = sorted(os.path.relpath(os.path.join(d, n), dest) for d, _, names in os.walk(dest) for n in names)
+  assert found == sorted(["README.md", "config.json", "stages.json", "results.csv", "table.md",
+                          "policy_val_metrics.json", "savi_val_metrics.json",
+                          os.path.join("videos", "train_s1_success.mp4")])
+  with open(os.path.join(dest, "savi_val_metrics.json")) as f:
+    assert f.read() == "[1]"
+  with open(os.path.join(dest, "README.md")) as f:
+    assert f.read() == "earlier"                          # a hand-written README stays
+  with open(os.path.join(dest, "config.json")) as f:
+    assert json.load(f)["encoder"] == "savi"
+
+
+def test_publish_refuses_a_run_without_evaluation_results_and_writes_nothing(tmp_path):
+  config, workdir = _finished_run(tmp_path, "state")
+  os.remove(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE))
+  with pytest.raises(UserError, match="no evaluation results"):
+    publish.publish(config, workdir, str(tmp_path / "results"))
+  assert not os.path.exists(tmp_path / "results")
