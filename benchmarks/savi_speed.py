@@ -4,8 +4,9 @@
       [--set savi.pool=2 --set "savi.decoder.strides=(2, 2)" ...]
 
 Times the jitted pretrain step (forward, backward, Adam) at batch 8 x 6 frames of 64x64 with the variant's SAVi
-(paper = SAVi-S), prints frames/s, the step's FLOPs from XLA's cost analysis of the compiled step, and the ratio
-of the step's FLOP/s to the FLOP/s of a large float32 matmul measured in the same run.
+(paper = SAVi-S), prints its parameter count (and :paper's), frames/s, the step's FLOPs from XLA's cost analysis
+of the compiled step, and the ratio of the step's FLOP/s to the FLOP/s of a large float32 matmul measured in the
+same run.
 """
 import argparse
 import os
@@ -19,6 +20,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import flops  # pylint: disable=wrong-import-position  (benchmarks/flops.py)
 from configs import common  # pylint: disable=wrong-import-position
+from roboshape.models import savi  # pylint: disable=wrong-import-position
 from roboshape.train import pretrain  # pylint: disable=wrong-import-position
 
 
@@ -62,8 +64,12 @@ def main():
   matmul = flops.matmul_flops_per_s()
 
   frames = args.batch * args.frames
+  params = savi.parameter_count(config.savi, 64)
+  paper_params = savi.parameter_count(common.get_config("pick", "savi", "paper").savi, 64)
   print(f"device: {jax.devices()[0].device_kind} x{jax.device_count()}, variant {args.variant}, "
         f"batch {args.batch} x {args.frames} frames, 64x64, K={config.savi.num_slots}, D={config.savi.slot_size}")
+  print(f"parameters: {params:,} ({args.variant}{' with --set' if args.set else ''}); :paper (SAVi-S) "
+        f"{paper_params:,}")
   print(f"compile: {compile_s:.1f} s; step times (s): {', '.join(f'{t:.3f}' for t in times)}")
   print(f"train step: {step_s:.3f} s median -> {frames / step_s:.1f} frames/s")
   print(f"step FLOPs (XLA cost analysis): {step_flops / 1e9:.1f} GFLOP -> {step_flops / step_s / 1e9:.1f} GFLOP/s")

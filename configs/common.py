@@ -72,8 +72,24 @@ def data_config(variant: str) -> ml_collections.ConfigDict:
 def savi_config(variant: str) -> ml_collections.ConfigDict:
   """SAVi, the object-centric video encoder (roboshape/models/savi.py, roboshape/train/pretrain.py).
 
-  paper: SAVi-S on 64x64 (five 32-channel 5x5 convs at full resolution, slot size 128, 8x8 broadcast grid and four
-  64-channel transposed convs). small: the same design made cheap enough for a 2-core CPU: it models the frames
+  paper: SAVi-S (google-research/slot-attention-video, savi_conditional_small.py, with the unconditional learned
+  Gaussian first slots) on 64x64: 32-channel 5x5 convs at full resolution, a position embedding and a 64-wide MLP
+  back to 32 features; slot size 128; a transformer-block predictor of 4 heads and MLP 256; a decoder from an 8x8
+  broadcast through three 5x5 stride-2 transposed convs and a 5x5 conv, all of 64 channels, then a 1x1 layer to
+  RGB + alpha. The corrector follows SAVi-S too: one slot-attention iteration per frame and no MLP after the GRU
+  (num_iterations=1, no mlp_size there); the paper's "iteratively cross-attended" does not fix a count, and SAVi
+  refines the slots across frames through the recurrence rather than within one.
+  Parameters (savi.parameter_count): 878,980, about 27 times fewer than R3M-50's 23.5M (2,184,868 before, with a
+  sub-pixel decoder, 2 iterations with a 256-wide corrector MLP and 64 encoder features). SAVi-S with the learned
+  Gaussian first slots has 853,028 (886,948 with its conditional initializer's MLP); the 25,952 more here are a
+  fifth encoder conv (25,632: the paper says five, SAVi-S has four) and 4 coordinate channels instead of 2 in the
+  two position embeddings (320).
+  Loss and clip: the loss is a mean over the pixel values; SAVi's is the sum over a clip's 6 x 64 x 64 x 3 = 73,728
+  values (meaned over clips), whose gradient is 73,728 times larger. :paper clips the mean's gradient at SAVi's
+  0.05 / 73,728 and Adam's epsilon scales with the clip (roboshape/train/pretrain.py:make_optimizer), which gives
+  SAVi's updates exactly, as Adam sees the gradients' scale only through the clip and epsilon. :small and :tiny
+  keep 0.05 on the mean, which their measured runs used (SAVi's clip at :small's 6 pooled 32x32 frames would be
+  0.05 / 18,432). small: the same design made cheap enough for a 2-core CPU: it models the frames
   average-pooled to 32x32 (pool=2; its masks are scored at 64x64), the first conv has stride 2, the decoder has two
   3x3 stride-2 layers of 32 and 16 channels for the alpha masks (it runs once per slot) from a learned vector per
   8x8 grid cell (decoder.position="learned") and paints each slot in one colour (decoder.rgb="slot"), with 9 slots
@@ -92,16 +108,16 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
       pool=_pick(variant, 1, 2, 1),  # frames are average-pooled by this factor before SAVi sees them
       # first frame's slots: "shared" (one learned mean + noise) or "queries" (K learned vectors, no noise)
       init_mean="queries" if variant == "small" else "shared",
-      num_iterations=_pick(variant, 2, 3, 2),  # slot-attention iterations per frame
+      num_iterations=_pick(variant, 1, 3, 2),  # slot-attention iterations per frame (SAVi-S: 1)
       slot_gradient="last" if variant == "small" else "full",  # "full": backprop through every iteration; "last":
                                                                # only through the last (first-order implicit gradient)
-      slot_mlp_size=_pick(variant, 256, 256, 64),
+      slot_mlp_size=_pick(variant, 0, 256, 64),  # the corrector's residual MLP; 0: none (SAVi-S)
       encoder=ml_collections.ConfigDict(dict(
           features=(32, 32, 32, 32, 32) if variant != "tiny" else (16, 16, 16, 16, 16),
           kernel_size=5,
           strides=(1, 1, 1, 1, 1) if paper else (2, 1, 1, 1, 1),
           mlp_size=_pick(variant, 64, 64, 32),
-          output_size=_pick(variant, 64, 64, 32),
+          output_size=_pick(variant, 32, 64, 32),  # SAVi-S: the MLP maps back to the CNN's 32 channels
       )),
       predictor=ml_collections.ConfigDict(dict(
           num_heads=4,
@@ -115,7 +131,8 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           strides=_pick(variant, (2, 2, 2, 1), (2, 2), (2, 2, 2)),
           rgb="slot" if variant == "small" else "spatial",  # "spatial": RGB per pixel from the CNN; "slot": one
                                                              # colour per slot (a Dense of the slot), masks spatial
-          upsampling="subpixel",  # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose"
+          # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose" (SAVi-S's)
+          upsampling="transpose" if paper else "subpixel",
           # grid position embedding: "coords" (a linear map of the pixel coordinates) or "learned" (a free vector
           # per grid cell; with kernel_size=1 and strides all 1 the decoder is a per-pixel MLP)
           position="learned" if variant == "small" else "coords",
@@ -126,7 +143,9 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
           clip_length=6,
           learning_rate=_pick(variant, 2e-4, 4e-4, 1e-3),
           warmup_steps=_pick(variant, 2500, 200, 2),
-          clip_norm=0.05,         # global gradient norm
+          # global gradient norm of the mean loss; :paper: SAVi's 0.05 on its loss summed over a clip's
+          # clip_length x 64 x 64 x 3 values (see the docstring; recompute it if you change those)
+          clip_norm=0.05 / (6 * 64 * 64 * 3) if paper else 0.05,
           # > 0: also reconstruct depth (metres), weighted so against the RGB MSE; needs env.depth=True data
           depth_weight=_pick(variant, 0.0, 0.25, 0.0),
           checkpoint_every=_pick(variant, 1000, 250, 10),

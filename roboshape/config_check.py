@@ -81,7 +81,7 @@ _INTS = {
         ("savi.slot_size", 1, "the width of a slot, a multiple of savi.predictor.num_heads"),
         ("savi.pool", 1, "the factor frames are average-pooled by, a divisor of env.resolution"),
         ("savi.num_iterations", 1, "slot-attention iterations per frame"),
-        ("savi.slot_mlp_size", 1, "the slot MLP's width"),
+        ("savi.slot_mlp_size", 0, "the slot MLP's width; 0: no MLP"),
         ("savi.encoder.kernel_size", 1, "the CNN's kernel side"),
         ("savi.encoder.mlp_size", 1, "the encoder MLP's width"),
         ("savi.encoder.output_size", 1, "the encoder's feature width"),

@@ -28,7 +28,7 @@ class FakeWorkerError(Exception):
 
 
 class FakePool:
-  """The sim bridge's closed-loop surface (contract A) with scripted episodes; can kill a 'worker' on a step."""
+  """The sim bridge's closed-loop surface (the frame dicts of roboshape/sim/__init__.py) with scripted episodes; can kill a 'worker' on a step."""
 
   def __init__(self, num_envs=2, crash_on_steps=(), crash_forever_seed=None, size=8):
     self.num_envs = num_envs

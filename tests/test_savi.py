@@ -186,6 +186,54 @@ def test_an_identity_initialised_predictor_starts_as_layernorm():
     else:              # a random attention and MLP move the slots away from it
       assert float(jnp.abs(out - normalised).max()) > 0.1
 
+# SAVi-S (savi_conditional_small with learned-Gaussian first slots) has 853,028; :paper adds a fifth encoder conv
+# (25,632) and 2 more coordinate channels in the two position embeddings (320) (configs/common.py:savi_config).
+PAPER_PARAMETERS = 878_980
+
+
+def test_the_paper_savi_has_savi_s_size_and_transposed_conv_decoder():
+  c = common.get_config("pick", "savi", "paper")
+  r = int(c.env.resolution)
+  assert savi.parameter_count(c.savi, r) == PAPER_PARAMETERS
+  model = savi.build_model(c.savi, r)
+  video = jax.ShapeDtypeStruct((1, 1, r, r, 3), jnp.float32)
+  params = jax.eval_shape(lambda v: model.init({"params": jax.random.key(0), "slots": jax.random.key(1)}, v),
+                          video)["params"]
+  kernels = [params["decoder"][f"up{i}"]["conv"]["kernel"].shape for i in range(4)]
+  assert kernels == [(5, 5, 128, 64)] + [(5, 5, 64, 64)] * 3     # a sub-pixel layer's would have 4 x 64 outputs
+  slots = jax.ShapeDtypeStruct((1, c.savi.num_slots, c.savi.slot_size), jnp.float32)
+  jaxpr = jax.make_jaxpr(lambda p, s: model.apply({"params": p}, s, method=savi.SAVi.decode))(params, slots)
+  convs = [e.params["lhs_dilation"] for e in jaxpr.eqns if e.primitive.name == "conv_general_dilated"]
+  assert convs == [(2, 2)] * 3 + [(1, 1)]                        # transposed (input-dilated) stride-2 convs
+  assert "mlp" not in params["processor"]["corrector"]           # SAVi-S's corrector: GRU, no MLP
+
+
+def test_the_paper_clip_on_the_mean_loss_gives_savis_updates_on_the_summed_loss():
+  """SAVi clips at 0.05 the gradient of its loss summed over a clip's N pixel values (Adam eps 1e-8); :paper's loss
+  is the mean, so the same updates need the clip and Adam's epsilon divided by N."""
+  c = common.get_config("pick", "savi", "paper")
+  side = int(c.env.resolution) // int(c.savi.pool)
+  n = int(c.savi.train.clip_length) * side * side * 3
+  assert c.savi.train.clip_norm == pytest.approx(0.05 / n, rel=1e-12)
+  savi_train = c.savi.train.copy_and_resolve_references()
+  savi_train.clip_norm = 0.05
+  ours, theirs = pretrain.make_optimizer(c.savi.train), pretrain.make_optimizer(savi_train)
+  rng = np.random.default_rng(0)
+  params = {"w": jnp.zeros((50, 40)), "b": jnp.zeros((40,))}
+  ours_state, theirs_state = ours.init(params), theirs.init(params)
+  for step, norm in enumerate((3.0, 0.01, 50.0, 0.001)):         # of the summed loss's gradient: clipped or not
+    g_sum = jax.tree.map(lambda p: jnp.asarray(rng.normal(size=p.shape), jnp.float32), params)
+    g_sum = jax.tree.map(lambda g: g * norm / float(jnp.sqrt(sum(jnp.sum(x * x) for x in jax.tree.leaves(g_sum)))),
+                         g_sum)
+    g_mean = jax.tree.map(lambda g: g / n, g_sum)
+    u_ours, ours_state = ours.update(g_mean, ours_state, params)
+    u_theirs, theirs_state = theirs.update(g_sum, theirs_state, params)
+    if step:                                                     # step 0: the warmup's learning rate is 0
+      assert float(jnp.abs(u_theirs["w"]).max()) > 0
+    for a, b in zip(jax.tree.leaves(u_ours), jax.tree.leaves(u_theirs)):
+      np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-12)
+
+
 def test_a_tiny_model_overfits_one_clip(trained):
   history = trained["result"]["history"]
   assert [s for s, _ in history] == list(range(1, STEPS + 1))

@@ -1,8 +1,9 @@
 """The `evaluate` stage: closed-loop rollouts of the trained policy under each generalization level.
 
 For each level in `config.eval.levels`, S = `config.eval.num_seeds` evaluation seeds x R =
-`config.eval.rollouts_per_seed` rollouts. The simulator runs in the bridge's pool (worker processes on CPU, one
-batched process with `sim_backend="physx_cuda"`); the policy runs in this process, batched over the pool's envs.
+`config.eval.rollouts_per_seed` rollouts. The simulator runs in the bridge's pool (worker processes, one env each,
+whatever the physics backend); the policy runs in this process, batched over the pool's envs. With
+`policy.train_seeds` every training seed's policy plays the same rollouts (videos of the first one only).
 
 Seed scheme. Rollout r of evaluation seed s gets the env seed
 

@@ -89,7 +89,7 @@ class SlotInitializer(nn.Module):
 
 class SlotAttention(nn.Module):
   """Iterative slot attention: attention normalised over the slots (they compete for each input), a weighted mean
-  of the values per slot, a GRU update and a residual MLP.
+  of the values per slot, a GRU update and a residual MLP (none with mlp_size=0, as SAVi-S's corrector).
 
   gradient="full": back-propagation runs through every iteration. gradient="last": the first-order implicit
   gradient (the iterations approximate a fixed point): all but the last iteration run under stop_gradient, and the
@@ -113,7 +113,7 @@ class SlotAttention(nn.Module):
     query_dense = nn.Dense(slot_size, use_bias=False, name="query")
     norm_slots = nn.LayerNorm(name="norm_slots")
     gru = nn.GRUCell(slot_size, name="gru")
-    mlp = layers.MLP(self.mlp_size, slot_size, layernorm=True, residual=True, name="mlp")
+    mlp = layers.MLP(self.mlp_size, slot_size, layernorm=True, residual=True, name="mlp") if self.mlp_size else None
     iterations = self.num_iterations
     for i in range(iterations):
       if self.gradient == "last" and i == iterations - 1 and i > 0:
@@ -125,7 +125,8 @@ class SlotAttention(nn.Module):
       weights = attention / (attention.sum(axis=-1, keepdims=True) + self.epsilon)
       updates = jnp.einsum("bkn,bnd->bkd", weights, values)               # weighted mean, [B, K, D]
       slots, _ = gru(slots, updates)
-      slots = mlp(slots)
+      if mlp is not None:
+        slots = mlp(slots)
     return slots
 
 
@@ -372,8 +373,8 @@ def decoder_grid_size(savi_config, resolution: int) -> int:
 def check_config(savi_config, resolution: int) -> None:
   """Raises UserError, "savi.<field>=<value>: use ...", unless a `config.savi` section builds a SAVi (and the AE,
   which shares its encoder, decoder and pool) that models square frames of `resolution` pixels a side: known modes,
-  one stride per layer, iterations >= 1, a pool that divides the frames, a decoder that draws the pooled frames'
-  size, a depth weight >= 0."""
+  one stride per layer, iterations >= 1, a slot MLP width >= 0, a pool that divides the frames, a decoder that
+  draws the pooled frames' size, a depth weight >= 0."""
   c = savi_config
   for field, value, choices in (("init_mean", c.init_mean, INIT_MEANS),
                                 ("slot_gradient", c.slot_gradient, SLOT_GRADIENTS),
@@ -387,6 +388,8 @@ def check_config(savi_config, resolution: int) -> None:
     if len(features) != len(strides):
       raise UserError(f"savi.{part}.strides={strides!r} has {len(strides)} entries: use {len(features)} (one "
                       f"stride per savi.{part}.features layer).")
+  if int(c.slot_mlp_size) < 0:
+    raise UserError(f"savi.slot_mlp_size={c.slot_mlp_size!r}: use an int >= 0 (the slot MLP's width; 0: no MLP).")
   if int(c.num_iterations) < 1:
     raise UserError(f"savi.num_iterations={c.num_iterations!r}: use an int >= 1 (slot-attention iterations per "
                     "frame).")
@@ -402,6 +405,16 @@ def check_config(savi_config, resolution: int) -> None:
   weight = depth_weight(c)
   if not math.isfinite(weight) or weight < 0:
     raise UserError(f"savi.train.depth_weight={weight!r}: use a number >= 0 (the weight of the depth MSE).")
+
+
+def parameter_count(savi_config, resolution: int) -> int:
+  """The number of learned parameters (the sum of the params' leaf sizes) of the SAVi a `config.savi` section
+  builds for frames of `resolution` pixels a side; from shapes alone (jax.eval_shape of init), so it costs no
+  compute."""
+  model = build_model(savi_config, resolution)
+  video = jax.ShapeDtypeStruct((1, 1, resolution, resolution, 3), jnp.float32)
+  shapes = jax.eval_shape(lambda v: model.init({"params": jax.random.key(0), "slots": jax.random.key(1)}, v), video)
+  return sum(math.prod(leaf.shape) for leaf in jax.tree_util.tree_leaves(shapes["params"]))
 
 
 def build_model(savi_config, resolution: int) -> SAVi:

@@ -60,9 +60,21 @@ def validate_config(config) -> None:
                     f"use a multiple of {devices}.")
 
 
+SAVI_CLIP_NORM = 0.05   # SAVi's max_grad_norm (on its loss, summed over a clip's pixel values)
+ADAM_EPS = 1e-8         # Adam's epsilon (optax's and SAVi's) at that clip
+
+
 def make_optimizer(train_config) -> optax.GradientTransformation:
-  """Adam on a warmup + cosine-decay schedule, after clipping the gradients' global norm."""
-  return optax.chain(optax.clip_by_global_norm(train_config.clip_norm), optax.adam(make_schedule(train_config)))
+  """Adam on a warmup + cosine-decay schedule, after clipping the gradients' global norm to train.clip_norm.
+
+  The clip applies to the gradient of the loss as `_train_step` reduces it: a mean over the pixel values. Adam's
+  epsilon scales with the clip (ADAM_EPS at SAVI_CLIP_NORM, so 1e-8 at 0.05), which makes a clip scaled together
+  with the loss give the same updates: Adam is blind to the gradients' scale except through epsilon. So SAVi's
+  0.05 on its loss summed over N values per clip is clip_norm = 0.05 / N on the mean (configs/common.py :paper).
+  """
+  clip = float(train_config.clip_norm)
+  eps = ADAM_EPS * (clip / SAVI_CLIP_NORM)   # exactly ADAM_EPS at clip 0.05
+  return optax.chain(optax.clip_by_global_norm(clip), optax.adam(make_schedule(train_config), eps=eps))
 
 
 def make_schedule(train_config) -> optax.Schedule:
@@ -104,8 +116,10 @@ class Compiled:
   def _train_step(self, state, video, depth, key):
     """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, key) -> (state, metrics).
 
-    The loss is the RGB reconstruction MSE, plus train.depth_weight times the depth MSE (in metres) when that
-    weight is > 0 (the model then predicts depth, SAVi++'s second target; `depth` must be given).
+    The loss is the RGB reconstruction MSE, a mean over clips, frames, pixels and channels (SAVi's is the sum over
+    a clip's frames, pixels and channels, meaned over clips; train.clip_norm is stated for the mean, see
+    `make_optimizer`), plus train.depth_weight times the depth MSE (in metres) when that weight is > 0 (the model
+    then predicts depth, SAVi++'s second target; `depth` must be given).
     """
     step_key = jax.random.fold_in(key, state["step"])
 
