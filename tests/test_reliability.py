@@ -220,13 +220,13 @@ def _copy_run(policy_run, tmp_path):
 
 
 def _damage_step(workdir, step):
-  """Truncates the biggest file (the arrays) of each item (the train state, the params) of one policy checkpoint."""
+  """Truncates to half every file of each item (the train state, the params) of one policy checkpoint: orbax may
+  spread an item's arrays over several data files (more of them on a busy machine), so every one is cut."""
   root = os.path.join(workdir, "policy", "checkpoints", str(step))
   for item in sorted(n for n in os.listdir(root) if os.path.isdir(os.path.join(root, n))):
-    files = [os.path.join(d, n) for d, _, names in os.walk(os.path.join(root, item)) for n in names]
-    biggest = max(files, key=os.path.getsize)
-    with open(biggest, "r+b") as f:
-      f.truncate(os.path.getsize(biggest) // 2)
+    for path in [os.path.join(d, n) for d, _, names in os.walk(os.path.join(root, item)) for n in names]:
+      with open(path, "r+b") as f:
+        f.truncate(os.path.getsize(path) // 2)
 
 
 def _params(config, workdir, step=None):
