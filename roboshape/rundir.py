@@ -65,12 +65,17 @@ def data_root(config, workdir: str) -> str:
   return config.data.dir or os.path.join(workdir, "data")
 
 
+def pretrain_dir(workdir: str, encoder: str) -> str:
+  """The folder of an encoder's pretrain stage, named after the encoder (savi/, ae/; absent for one without)."""
+  return os.path.join(workdir, encoder)
+
+
 def savi_dir(workdir: str) -> str:
-  return os.path.join(workdir, "savi")
+  return pretrain_dir(workdir, "savi")
 
 
 def ae_dir(workdir: str) -> str:
-  return os.path.join(workdir, "ae")
+  return pretrain_dir(workdir, "ae")
 
 
 def seed_dir(stage_dir: str, seed: int) -> str:

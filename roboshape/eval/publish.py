@@ -27,20 +27,15 @@ KEPT = ("README.md",)
 EVAL_FILES = ("results.csv", "table.md", "table.tex", "success_by_level.png")
 
 
-def _pretrain_dir(workdir: str, encoder: str) -> str:
-  return {"savi": rundir.savi_dir, "ae": rundir.ae_dir}.get(encoder, lambda _: "")(workdir)
-
-
 def planned(config, workdir: str) -> List[tuple]:
   """(source path, name in the published folder) of every file `publish` copies from `workdir`."""
   pairs = [(rundir.config_path(workdir), "config.json"), (rundir.stage_log_path(workdir), "stages.json")]
   pairs += [(os.path.join(rundir.eval_dir(workdir), name), name) for name in EVAL_FILES]
   policy = rundir.policy_dir(workdir)
   pairs += [(os.path.join(policy, f"val_metrics{ext}"), f"policy_val_metrics{ext}") for ext in (".json", ".png")]
-  encoder_dir = _pretrain_dir(workdir, config.encoder)
-  if encoder_dir:
-    for path in sorted(glob.glob(os.path.join(encoder_dir, "*.json")) + glob.glob(os.path.join(encoder_dir, "*.png"))):
-      pairs.append((path, f"{config.encoder}_{os.path.basename(path)}"))
+  encoder_dir = rundir.pretrain_dir(workdir, config.encoder)
+  for path in sorted(glob.glob(os.path.join(encoder_dir, "*.json")) + glob.glob(os.path.join(encoder_dir, "*.png"))):
+    pairs.append((path, f"{config.encoder}_{os.path.basename(path)}"))
   for path in sorted(glob.glob(os.path.join(rundir.videos_dir(workdir), "*.mp4"))):
     pairs.append((path, os.path.join("videos", os.path.basename(path))))
   return [(src, name) for src, name in pairs if os.path.isfile(src)]
