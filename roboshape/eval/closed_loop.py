@@ -228,7 +228,7 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
 
 
 def _over(summary: Sequence[Dict], config) -> str:
-  if any(r.get("over") == "training seeds" for r in summary):
+  if results_lib.over_training_seeds(summary):
     return f"{len(rundir.train_seeds(config))} training seeds, each on {config.eval.num_seeds} x " \
            f"{config.eval.rollouts_per_seed} rollouts"
   return f"{config.eval.num_seeds} seeds of {config.eval.rollouts_per_seed} rollouts"
@@ -236,7 +236,7 @@ def _over(summary: Sequence[Dict], config) -> str:
 
 def notes(summary: Sequence[Dict], num_seeds: int, rollouts_per_seed: int) -> str:
   """The lines under a table: what a cell is, and rollouts lost to worker crashes."""
-  if any(r.get("over") == "training seeds" for r in summary):
+  if results_lib.over_training_seeds(summary):
     trained = max(len(r["per_seed"]) for r in summary)
     lines = [f"Mean ± std (ddof=0) over {trained} training seed(s) of the policy, each evaluated on {num_seeds} "
              f"evaluation seed(s) x {rollouts_per_seed} rollouts; \"none\" = the training distribution."]

@@ -66,7 +66,7 @@ def build_report(config, workdir: str) -> Dict[str, str]:
               + ". \"none\" = the training distribution, L1 unseen distractor colours, L2 unseen background "
               "colours, L3 novel distractor sizes.")
     by_training = sorted({f"{r['task']} x {tables.encoder_name(r['encoder'])}" for r in summary
-                          if r.get("over") == "training seeds"})
+                          if results_lib.over_training_seeds([r])})
     if by_training:
       md.append(f"Cells of runs with several training seeds ({', '.join(by_training)}): mean ± std over the "
                 "training seeds of each policy's success rate on all its evaluation rollouts.")

@@ -76,6 +76,14 @@ def _read_jsonl(path: str) -> List[Dict]:
   return records
 
 
+OVER_TRAINING_SEEDS = "training seeds"     # a summary row's `over` when its std is over training seeds
+
+
+def over_training_seeds(summary: Iterable[Dict]) -> bool:
+  """Whether summary rows give mean ± std over training seeds (policy.train_seeds) rather than evaluation seeds."""
+  return any(r.get("over") == OVER_TRAINING_SEEDS for r in summary)
+
+
 def summarize(records: Iterable[Dict]) -> List[Dict]:
   """One row per (task, encoder, level): the mean and std of the success rate over seeds.
 
@@ -99,7 +107,7 @@ def summarize(records: Iterable[Dict]) -> List[Dict]:
         task=task, encoder=encoder, level=level,
         mean=float(np.mean(per_seed)) if per_seed else None,
         std=float(np.std(per_seed)) if per_seed else None,
-        over="training seeds" if by_training else "evaluation seeds",
+        over=OVER_TRAINING_SEEDS if by_training else "evaluation seeds",
         per_seed=per_seed,
         rollouts=len(finished),
         successes=int(sum(bool(r["success"]) for r in finished)),
