@@ -11,6 +11,8 @@ Each is measured twice (expert, policy, expert, policy) and the better of each p
 shared machine. Prints both rates, their ratio (the bar: >= 0.6 on a 2-core CPU), the policy's own cost per
 batched step, and what the paper's evaluation grid (3 tasks x 3 encoders x 4 levels x 300 rollouts) would take
 at the measured rate.
+Then the simulator alone, the same envs stepped with the same actions, rendered (what a camera policy's rollouts
+cost) and not rendered (what a `state` policy's unrecorded rollouts cost: `pool.reset(seeds, render=False)`).
 """
 import argparse
 import os
@@ -68,6 +70,16 @@ def time_policy(pool, policy, seeds):
   return sum(lengths) / (time.perf_counter() - start), float(np.mean(lengths))
 
 
+def time_env(pool, seeds, render, steps):
+  """Env steps/s of the pool's envs reset from `seeds` and stepped `steps` times with zero actions."""
+  pool.reset(seeds, render=[render] * len(seeds))
+  actions = np.zeros((len(seeds), 7), np.float32)
+  start = time.perf_counter()
+  for _ in range(steps):
+    pool.step(actions)
+  return steps * len(seeds) / (time.perf_counter() - start)
+
+
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--task", default="push", choices=common.TASKS)
@@ -107,12 +119,17 @@ def main():
       policy_rates.append(rate)
       print(f"  round {rep + 1}: expert {expert[-1]:.1f} env steps/s, SAVi policy {policy_rates[-1]:.1f} env "
             f"steps/s", flush=True)
+    seeds = [10**9 + 700_000 + i for i in range(n)]
+    camera = max(time_env(pool, seeds, True, 60) for _ in range(2))
+    blind = max(time_env(pool, seeds, False, 60) for _ in range(2))
   e, p = max(expert), max(policy_rates)
   print(f"envs in the pool: {n}; episodes per measurement: {episodes}")
   print(f"policy act_batch alone (B={n}, no simulator): {act_ms:.1f} ms per batched step")
   print(f"expert: {e:.1f} env steps/s (mean episode {expert_len:.0f} steps)")
   print(f"SAVi policy: {p:.1f} env steps/s (mean episode {policy_len:.0f} steps, random weights: mostly horizon)")
   print(f"ratio policy/expert: {p / e:.2f} (bar >= 0.6)")
+  print(f"simulator alone: rendered {camera:.1f} env steps/s, not rendered {blind:.1f} env steps/s "
+        f"({blind / camera:.1f}x: a `state` policy's unrecorded rollouts)")
   rollouts = 3 * 3 * 4 * 300
   for label, length in (("every rollout runs to the horizon", policy_len), ("rollouts as long as the expert's",
                                                                              expert_len)):

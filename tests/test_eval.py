@@ -38,6 +38,7 @@ class FakePool:
     self.steps = 0
     self.restarts = 0
     self.reset_seeds = []
+    self.rendered = {}
     self.dead = False
 
   def __enter__(self):
@@ -53,16 +54,17 @@ class FakePool:
       img[i, ..., 1] = t
     return img
 
-  def reset(self, seeds):
+  def reset(self, seeds, render=None):
     assert not self.dead, "reset on a dead pool without restart()"
     assert 0 < len(seeds) <= self.num_envs
+    self.rendered.update(zip(seeds, render if render is not None else [True] * len(seeds)))
     self.seeds = list(seeds)
     self.reset_seeds += list(seeds)
     self.elapsed = np.zeros(len(seeds), np.int32)
     self.done = np.zeros(len(seeds), bool)
     self.success = np.zeros(len(seeds), bool)
-    return dict(image=self._frames(), success=self.success.copy(), done=self.done.copy(),
-                elapsed=self.elapsed.copy())
+    return dict(image=self._frames(), state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(),
+                done=self.done.copy(), elapsed=self.elapsed.copy())
 
   def step(self, actions):
     assert actions.shape == (len(self.seeds), 7) and actions.dtype == np.float32
@@ -79,7 +81,7 @@ class FakePool:
       if self.elapsed[i] >= length:
         self.done[i], self.success[i] = True, ok
     return dict(image=self._frames(), segmentation=np.zeros(self._frames().shape[:3], np.uint8),
-                success=self.success.copy(), done=self.done.copy(), elapsed=self.elapsed.copy())
+                state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(), done=self.done.copy(), elapsed=self.elapsed.copy())
 
   def restart(self):
     self.restarts += 1
@@ -89,7 +91,8 @@ class FakePool:
 class FakePolicy:
   """act_batch returns out-of-range actions (the loop must clip them); records the batch sizes it saw."""
 
-  def __init__(self, interrupt_after=None):
+  def __init__(self, interrupt_after=None, inputs=("image",)):
+    self.inputs = inputs
     self.batch_sizes = set()
     self.calls = 0
     self.interrupt_after = interrupt_after
@@ -104,8 +107,8 @@ class FakePolicy:
     self.calls += 1
     if self.interrupt_after is not None and self.calls > self.interrupt_after:
       raise KeyboardInterrupt
-    assert set(frames) == {"image"}
-    frames = frames["image"]
+    assert set(frames) == set(self.inputs)
+    frames = frames[self.inputs[0]]
     self.batch_sizes.add(frames.shape[0])
     return np.full((frames.shape[0], 7), 1.5, np.float32)
 
@@ -213,6 +216,16 @@ def test_rollouts_crash_restart_keeps_finished():
   assert policy.batch_sizes == {2}                                   # the short last wave is padded
 
 
+def test_a_policy_without_camera_inputs_renders_only_the_recorded_rollouts():
+  plan = closed_loop.rollout_plan(("train",), 1, 5, 1000)
+  for inputs, rendered in ((("image",), {1000, 1001, 1002, 1003, 1004}), (("state",), {1001, 1003})):
+    pool, got = FakePool(num_envs=2), []
+    closed_loop.run_rollouts(pool, FakePolicy(inputs=inputs), plan, lambda r, res, fr: got.append((r.seed, fr)),
+                             record=[plan[1], plan[3]])
+    assert {seed for seed, on in pool.rendered.items() if on} == rendered
+    assert sorted(seed for seed, frames in got if frames is not None) == [1001, 1003]
+
+
 def test_persistent_crash_reported_not_counted(tmp_path):
   config = _config(levels=("train",), num_seeds=1, rollouts=4)
   config.eval.max_retries = 1
@@ -269,8 +282,8 @@ class CrashOnce:
   def __exit__(self, *exc):
     self.pool.close()
 
-  def reset(self, seeds):
-    return self.pool.reset(seeds)
+  def reset(self, seeds, render=None):
+    return self.pool.reset(seeds, render)
 
   def step(self, actions):
     self.steps += 1

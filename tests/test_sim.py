@@ -100,9 +100,26 @@ def test_closed_loop_replays_an_expert_episode_bit_for_bit(pool, episodes):
   assert again["elapsed"].tolist() == [steps, steps + 1] and again["done"][0]
 
 
+def test_an_env_reset_without_render_has_the_same_state_and_no_frames(pool, episodes):
+  e = episodes[0]
+  obs = pool.reset([e["seed"], e["seed"]], render=[False, True])
+  assert not obs["image"][0].any() and not obs["segmentation"][0].any()
+  np.testing.assert_array_equal(obs["image"][1], e["image"][0])
+  np.testing.assert_array_equal(obs["state"], e["state"][[0, 0]])
+  for t in range(3):
+    out = pool.step(np.stack([e["action"][t]] * 2))
+  assert not out["image"][0].any()
+  np.testing.assert_array_equal(out["image"][1], e["image"][3])
+  np.testing.assert_array_equal(out["state"], e["state"][[3, 3]])   # the physics does not depend on the camera
+  rendered = pool.reset([e["seed"]])                                  # the next reset renders again
+  np.testing.assert_array_equal(rendered["image"][0], e["image"][0])
+
+
 def test_closed_loop_input_checks(pool):
   with pytest.raises(UserError, match="seeds for a pool of 2"):
     pool.reset([1, 2, 3])
+  with pytest.raises(UserError, match="one per seed"):
+    pool.reset([1, 2], render=[True])
   pool.reset([1])
   with pytest.raises(UserError, match=r"shape \(1, 7\)"):
     pool.step(np.zeros((2, 7), np.float32))

@@ -14,9 +14,10 @@ import importlib
 from typing import Callable, Dict, Tuple
 
 from roboshape.errors import UserError
+from roboshape.sim.spec import CAMERA_KEYS
 
 # What the simulator workers and the dataset provide per step (roboshape/data/rlds.py, roboshape/sim/worker.py).
-OBSERVATION_KEYS = ("image", "segmentation", "depth", "state")
+OBSERVATION_KEYS = CAMERA_KEYS + ("state",)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -46,6 +46,7 @@ from roboshape.eval import plots
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
 from roboshape.eval import videos
+from roboshape.sim.spec import CAMERA_KEYS
 
 SEED_STRIDE = 100_000
 
@@ -82,9 +83,10 @@ def run_rollouts(pool, policy, rollouts: Sequence[Rollout], on_done: OnDone, rec
   """Rolls `policy` out in `pool` for every rollout; calls `on_done` as each one ends.
 
   Args:
-    pool: has `num_envs`, `reset(seeds)` and `step(actions [N,7])`, both -> dict(image uint8 [N,H,W,3], the other
-      observation keys the policy reads, success, done, elapsed), and `restart()` (the sim bridge's pool, or a fake
-      in tests).
+    pool: has `num_envs`, `reset(seeds, render)` and `step(actions [N,7])`, both -> dict(image uint8 [N,H,W,3], the
+      other observation keys the policy reads, success, done, elapsed), and `restart()` (the sim bridge's pool, or
+      a fake in tests). `render` says per env whether its camera is rendered: always for a policy that reads one
+      of the camera's keys, else (a `state` policy) only for the recorded rollouts, so the others pay no rendering.
     policy: has `reset(batch_size)`, `reset_slots(indices)`, `act_batch(obs) -> [B,7]` (obs: a dict of the keys
       in `policy.inputs`, default ("image",)); it always sees a full batch of `pool.num_envs` observations (a
       short last wave is padded with zeros).
@@ -145,7 +147,8 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
   """Resets the wave's envs, steps them until all are done, reports each rollout as it ends."""
   k = len(wave)
   inputs = tuple(getattr(policy, "inputs", ("image",)))
-  out = pool.reset([r.seed for r in wave])
+  camera = any(key in CAMERA_KEYS for key in inputs)  # else only the recorded rollouts are rendered
+  out = pool.reset([r.seed for r in wave], render=[camera or r in record for r in wave])
   policy.reset_slots(list(range(n)))
   frames = {i: [out["image"][i]] for i, r in enumerate(wave) if r in record}
   active = np.ones(k, bool)

@@ -11,6 +11,6 @@ What crosses the bridge is numpy arrays and python scalars, in two dicts:
     segmentation, state, [depth,] success bool [N], done bool [N], elapsed int32 [N].
 """
 from roboshape.sim.pool import SimPool, SimWorkerError
-from roboshape.sim.spec import EnvSpec, check_seeds
+from roboshape.sim.spec import CAMERA_KEYS, EnvSpec, check_seeds
 
-__all__ = ["EnvSpec", "SimPool", "SimWorkerError", "check_seeds"]
+__all__ = ["CAMERA_KEYS", "EnvSpec", "SimPool", "SimWorkerError", "check_seeds"]

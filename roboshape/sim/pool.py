@@ -261,13 +261,20 @@ class SimPool:
               pass
 
   # ------------------------------------------------------------------------------------------- closed loop
-  def reset(self, seeds: Sequence[int]) -> Dict[str, np.ndarray]:
-    """Resets env i from seeds[i] (len(seeds) <= num_envs); returns their first observations, as `step` does."""
+  def reset(self, seeds: Sequence[int], render: Optional[Sequence[bool]] = None) -> Dict[str, np.ndarray]:
+    """Resets env i from seeds[i] (len(seeds) <= num_envs); returns their first observations, as `step` does.
+
+    render: per env, whether its camera is rendered this episode (default: all). An env reset with False returns
+    zeros for image, segmentation and depth until its next reset, and its steps cost the physics alone.
+    """
     seeds = check_seeds(seeds)
     if not 0 < len(seeds) <= self.num_envs:
       raise UserError(f"pool.reset got {len(seeds)} seeds for a pool of {self.num_envs} envs; "
                       f"pass between 1 and {self.num_envs}")
-    out = self._broadcast("reset", seeds)
+    render = [True] * len(seeds) if render is None else [bool(x) for x in render]
+    if len(render) != len(seeds):
+      raise UserError(f"pool.reset got {len(render)} render flags for {len(seeds)} seeds; pass one per seed")
+    out = self._broadcast("reset", list(zip(seeds, render)))
     self._active = len(seeds)
     return _stack(out)
 

@@ -7,6 +7,8 @@ from roboshape import envs
 from roboshape.errors import UserError
 
 MAX_SEED = 2**31 - 1
+# the frame dict's keys that come from the camera: an env reset with render False returns them as zeros
+CAMERA_KEYS = ("image", "segmentation", "depth")
 
 
 @dataclasses.dataclass(frozen=True)
