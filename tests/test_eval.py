@@ -9,6 +9,7 @@ import pytest
 
 from configs import common
 from configs import reproduce
+from roboshape import envs
 from roboshape import stages
 from roboshape.eval import closed_loop
 from roboshape.eval import report
@@ -28,7 +29,9 @@ class FakeWorkerError(Exception):
 
 
 class FakePool:
-  """The sim bridge's closed-loop surface (the frame dicts of roboshape/sim/__init__.py) with scripted episodes; can kill a 'worker' on a step."""
+  """The sim bridge's closed-loop surface (the frame dicts of roboshape/sim/__init__.py) with scripted episodes; can kill a 'worker' on a step.
+  Push's milestones: "moved" after one step, "halfway" after two, "on_target" with success."""
+  milestones = envs.MILESTONES["push"]
 
   def __init__(self, num_envs=2, crash_on_steps=(), crash_forever_seed=None, size=8):
     self.num_envs = num_envs
@@ -64,7 +67,10 @@ class FakePool:
     self.done = np.zeros(len(seeds), bool)
     self.success = np.zeros(len(seeds), bool)
     return dict(image=self._frames(), state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(),
-                done=self.done.copy(), elapsed=self.elapsed.copy())
+                done=self.done.copy(), elapsed=self.elapsed.copy(), reached=self._reached())
+
+  def _reached(self):
+    return np.stack([self.elapsed >= 1, self.elapsed >= 2, self.success], axis=1)
 
   def step(self, actions):
     assert actions.shape == (len(self.seeds), 7) and actions.dtype == np.float32
@@ -81,7 +87,8 @@ class FakePool:
       if self.elapsed[i] >= length:
         self.done[i], self.success[i] = True, ok
     return dict(image=self._frames(), segmentation=np.zeros(self._frames().shape[:3], np.uint8),
-                state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(), done=self.done.copy(), elapsed=self.elapsed.copy())
+                state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(), done=self.done.copy(),
+                elapsed=self.elapsed.copy(), reached=self._reached())
 
   def restart(self):
     self.restarts += 1
@@ -212,7 +219,8 @@ def test_rollouts_crash_restart_keeps_finished():
   assert pool.reset_seeds == [1000, 1001, 1001, 1002, 1003, 1004]   # only the in-flight rollout re-runs, alone
   for r, res in got:
     ok, length = _outcome(r.seed)
-    assert res == dict(success=ok, length=length, ended="success" if ok else "horizon")
+    reached = ["moved", "halfway"] + (["on_target"] if ok else [])
+    assert res == dict(success=ok, length=length, ended="success" if ok else "horizon", reached=reached)
   assert policy.batch_sizes == {2}                                   # the short last wave is padded
 
 
@@ -273,7 +281,7 @@ class CrashOnce:
 
   def __init__(self, pool, at_step):
     self.pool, self.at_step, self.steps = pool, at_step, 0
-    self.num_envs = pool.num_envs
+    self.num_envs, self.milestones = pool.num_envs, pool.milestones
     self.restarts = 0
 
   def __enter__(self):
@@ -337,6 +345,15 @@ def test_evaluate_writes_all_outputs(evaluated):
   with open(paths["csv"]) as f:
     rows = list(csv.DictReader(f))
   assert len(rows) == 4 and rows[0]["task"] == "push" and rows[0]["encoder"] == "savi"
+  milestones = open(paths["milestones"]).read()
+  assert "| | rollouts | moved | halfway | on_target | failed |" in milestones
+  successes = sum(r["success"] for r in data["rollouts"])
+  for r, row in zip(data["rollouts"], rows):
+    assert set(r["reached"]) <= set(envs.MILESTONES["push"]) and row["reached"] == "+".join(r["reached"])
+    assert ("on_target" in r["reached"]) == r["success"]         # push's last milestone is its success
+  if not real:  # moved after one step, halfway after two: every rollout; on target: the 2 successes
+    assert successes == 2
+    assert "| L1 | 4 | 1.00 (4/4) | 1.00 (4/4) | 0.50 (2/4) | 2 | 1.00 (2/2) | 1.00 (2/2) | 0.00 (0/2) |" in milestones
   md = open(paths["md"]).read()
   assert "| | SAVi |" in md and "| L1 |" in md
   assert r"\begin{tabular}{|c||c|}" in open(paths["tex"]).read()

@@ -9,6 +9,10 @@ from roboshape.envs.palettes import LEVEL_NAMES
 TASKS = ("push", "pick", "place")
 ENV_VERSION = "roboshape-envs-5"   # bumps whenever what a seed produces changes
 MIN_RESOLUTION, MAX_RESOLUTION = 16, 512
+# The steps on the way to each task's success, in order (tasks.py says when each holds); closed-loop evaluation
+# records which ones every rollout reached, so a failure reads as how far it got.
+MILESTONES = {"push": ("moved", "halfway", "on_target"), "pick": ("grasped", "lifted", "at_point"),
+              "place": ("grasped", "lifted", "over_bin", "in_bin")}
 
 
 def check_args(task: str, level: str, resolution: int = 64) -> None:

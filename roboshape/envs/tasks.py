@@ -3,6 +3,9 @@
 Success is read from the simulator state in `evaluate()`, with the thresholds written below in each class.
 Horizons (`HORIZON`, control steps at 20 Hz) are at least 1.5x the expert's 95th-percentile episode length
 (measured by benchmarks/expert_success.py).
+
+Milestones (their names: roboshape.envs.MILESTONES). Each task's `milestones(start)` says which hold at the current
+step, given the cube's position at reset; closed-loop evaluation records which ones a rollout ever reached.
 """
 from typing import List, Tuple
 
@@ -13,10 +16,21 @@ import torch
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.actor import Actor
 
+from roboshape import envs
 from roboshape.envs import palettes
 from roboshape.envs import scene
 
 ENV_IDS = {"push": "RoboShape-Push-v1", "pick": "RoboShape-Pick-v1", "place": "RoboShape-Place-v1"}
+
+
+MOVED = 0.02    # the cube moved this far (m, in the table plane) from where it was at reset
+LIFTED = 0.03   # the grasped cube's centre this far (m) above its height at reset
+
+
+def _lifted(env, start: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+  """(grasped, grasped and lifted) bool [N]."""
+  grasped = env.agent.is_grasping(env.cube)
+  return grasped, grasped & (env.cube.pose.p[:, 2] - start[:, 2] >= LIFTED)
 
 
 def _sample_point_at(rng: np.random.Generator, origin: np.ndarray, dist_range, region) -> np.ndarray:
@@ -61,6 +75,16 @@ class PushEnv(scene.RoboShapeEnv):
     dist = torch.linalg.norm(self.cube.pose.p[:, :2] - self.goal_pos[:, :2].to(self.device), dim=1)
     return {"success": dist <= self.SUCCESS_DIST, "cube_to_goal": dist}
 
+  MILESTONES = envs.MILESTONES["push"]
+
+  def milestones(self, start: torch.Tensor) -> torch.Tensor:
+    """bool [N, 3]: the cube moved MOVED from `start` [N, 3]; it is at most half its reset distance from the
+    target's centre; it is on the target (success)."""
+    cube, goal = self.cube.pose.p[:, :2], self.goal_pos[:, :2].to(self.device)
+    dist, start_dist = torch.linalg.norm(cube - goal, dim=1), torch.linalg.norm(start[:, :2] - goal, dim=1)
+    moved = torch.linalg.norm(cube - start[:, :2], dim=1) >= MOVED
+    return torch.stack([moved, dist <= 0.5 * start_dist, dist <= self.SUCCESS_DIST], dim=1)
+
 
 @register_env(ENV_IDS["pick"], max_episode_steps=90)
 class PickEnv(scene.RoboShapeEnv):
@@ -84,6 +108,13 @@ class PickEnv(scene.RoboShapeEnv):
     dist = torch.linalg.norm(self.cube.pose.p - self.goal_pos.to(self.device), dim=1)
     grasped = self.agent.is_grasping(self.cube)
     return {"success": (dist <= self.SUCCESS_DIST) & grasped, "cube_to_goal": dist, "is_grasped": grasped}
+
+  MILESTONES = envs.MILESTONES["pick"]
+
+  def milestones(self, start: torch.Tensor) -> torch.Tensor:
+    """bool [N, 3]: the cube is grasped; grasped and LIFTED above its reset height; held at the point (success)."""
+    grasped, lifted = _lifted(self, start)
+    return torch.stack([grasped, lifted, self.evaluate()["success"]], dim=1)
 
 
 @register_env(ENV_IDS["place"], max_episode_steps=120)
@@ -133,6 +164,15 @@ class PlaceEnv(scene.RoboShapeEnv):
     resting = offset[:, 2] <= self.REST_HEIGHT
     grasped = self.agent.is_grasping(self.cube)
     return {"success": inside & resting & ~grasped, "inside": inside, "is_grasped": grasped}
+
+  MILESTONES = envs.MILESTONES["place"]
+
+  def milestones(self, start: torch.Tensor) -> torch.Tensor:
+    """bool [N, 4]: the cube is grasped; grasped and LIFTED above its reset height; its centre is over the bin's
+    inner square (at any height); it rests in the bin, released (success)."""
+    grasped, lifted = _lifted(self, start)
+    info = self.evaluate()
+    return torch.stack([grasped, lifted, info["inside"], info["success"]], dim=1)
 
 
 TASK_CLASSES = {"push": PushEnv, "pick": PickEnv, "place": PlaceEnv}

@@ -38,6 +38,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from roboshape import envs
 from roboshape import fileio
 from roboshape import rundir
 from roboshape.envs.palettes import LEVEL_NAMES
@@ -149,6 +150,7 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
   inputs = tuple(getattr(policy, "inputs", ("image",)))
   camera = any(key in CAMERA_KEYS for key in inputs)  # else only the recorded rollouts are rendered
   out = pool.reset([r.seed for r in wave], render=[camera or r in record for r in wave])
+  names = tuple(getattr(pool, "milestones", ()))
   policy.reset_slots(list(range(n)))
   frames = {i: [out["image"][i]] for i, r in enumerate(wave) if r in record}
   active = np.ones(k, bool)
@@ -163,8 +165,10 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
         active[i] = False
         success = bool(out["success"][i])
         finished.add(wave[i])
-        finish(wave[i], dict(success=success, length=int(out["elapsed"][i]), ended="success" if success else "horizon"),
-               np.stack(frames[i]) if i in frames else None)
+        result = dict(success=success, length=int(out["elapsed"][i]), ended="success" if success else "horizon")
+        if names and "reached" in out:
+          result["reached"] = [name for name, hit in zip(names, out["reached"][i]) if hit]
+        finish(wave[i], result, np.stack(frames[i]) if i in frames else None)
 
 
 def _pad(x: np.ndarray, n: int) -> np.ndarray:
@@ -198,7 +202,8 @@ def _slot_video_fn(config, workdir):
 
 
 def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, str]:
-  """results.json, results.csv, table.md, table.tex and success_by_level.png from the rollout records."""
+  """results.json, results.csv, table.md, table.tex, success_by_level.png and, when the rollouts recorded the
+  task's milestones, milestones.md (how far they got: roboshape.envs.MILESTONES) from the rollout records."""
   out_dir = rundir.eval_dir(workdir)
   os.makedirs(out_dir, exist_ok=True)
   levels = [l for l in LEVEL_NAMES if l in tuple(config.eval.levels)]
@@ -227,6 +232,15 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
                 f"(mean $\\pm$ std over {_over(summary, config)})"))
   plots.overall_bar_chart(summary, paths["png"], levels=levels,
                           title=f"{config.task}: success rate per level")
+  names = envs.MILESTONES[config.task]
+  counts = results_lib.milestone_counts(records, names)
+  if counts:
+    paths["milestones"] = os.path.join(out_dir, "milestones.md")
+    fileio.atomic_write_text(paths["milestones"], (
+        f"### {config.task}: how far the rollouts got, {tables.encoder_name(config.encoder)}\n\n"
+        + tables.render_milestones(counts, names)
+        + f"\nShare of rollouts that reached each milestone at some step (pooled over seeds), then the same over the "
+          f"failed rollouts alone; milestones of {config.task}: {', '.join(names)} (roboshape/envs/tasks.py).\n"))
   return paths
 
 

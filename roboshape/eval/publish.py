@@ -7,7 +7,8 @@ its evaluation is complete. What is copied, under fixed names (files the run doe
 
   config.json                      the config that ran
   stages.json                      each stage's wall time (roboshape.status reads it)
-  results.csv, table.md, table.tex, success_by_level.png       eval/: every rollout, the tables, the plot
+  results.csv, table.md, table.tex, success_by_level.png, milestones.md   eval/: every rollout, the tables, the
+                                                                          plot, how far the rollouts got
   policy_val_metrics.json/.png     the policy's validation curve
   <encoder>_val_metrics.json/.png  the encoder's pretraining curve (savi, ae), and its seed selection files
   videos/*.mp4                     the rollout videos the evaluation recorded (a few per level)
@@ -24,7 +25,7 @@ from roboshape import rundir
 from roboshape.errors import UserError
 
 KEPT = ("README.md",)
-EVAL_FILES = ("results.csv", "table.md", "table.tex", "success_by_level.png")
+EVAL_FILES = ("results.csv", "table.md", "table.tex", "success_by_level.png", "milestones.md")
 
 
 def planned(config, workdir: str) -> List[tuple]:

@@ -4,11 +4,13 @@ Every finished rollout is one line of <workdir>/eval/results.jsonl, flushed at o
 what it finished and a rerun skips it. A record:
 
   {"task": "push", "encoder": "savi", "level": "L1", "seed_index": 0, "rollout": 7, "seed": 1000000007,
-   "success": true, "length": 83, "ended": "success", "policy": "<fingerprint>"}
+   "success": true, "length": 83, "ended": "success", "reached": ["moved", "halfway", "on_target"],
+   "policy": "<fingerprint>"}
 
 `ended` is "success" (the env's success check fired), "horizon" (the episode ran to its step limit) or
 "worker_crash" (the simulator worker died on this rollout more often than allowed: the rollout is reported and
-left out of the statistics). Success rates are computed per evaluation seed (over its rollouts), then
+left out of the statistics). `reached` names the task's milestones (roboshape.envs.MILESTONES) the rollout reached at
+some step; logs written before milestones were recorded have none. Success rates are computed per evaluation seed (over its rollouts), then
 mean +- std (population std, ddof=0) over seeds, as in the paper's tables.
 """
 import csv
@@ -21,7 +23,8 @@ import numpy as np
 
 from roboshape import fileio
 
-CSV_FIELDS = ("task", "encoder", "train_seed", "level", "seed_index", "rollout", "seed", "success", "length", "ended")
+CSV_FIELDS = ("task", "encoder", "train_seed", "level", "seed_index", "rollout", "seed", "success", "length", "ended",
+              "reached")
 
 
 def key(record: Dict) -> tuple:
@@ -121,5 +124,23 @@ def write_csv(path: str, records: Sequence[Dict]) -> None:
   writer = csv.DictWriter(text, fieldnames=CSV_FIELDS, extrasaction="ignore")
   writer.writeheader()
   for r in records:
-    writer.writerow(r)
+    writer.writerow(dict(r, reached="+".join(r.get("reached", ()))))
   fileio.atomic_write_text(path, text.getvalue())
+
+
+def milestone_counts(records: Iterable[Dict], names: Sequence[str]) -> List[Dict]:
+  """Per level (as first seen), over the rollouts that recorded milestones: {level, rollouts, failures, reached:
+  {name: rollouts that reached it}, failed_reached: {name: failed rollouts that reached it}}."""
+  rows: Dict[str, Dict] = {}
+  for r in records:
+    if r["ended"] == "worker_crash" or "reached" not in r:
+      continue
+    row = rows.setdefault(r["level"], dict(level=r["level"], rollouts=0, failures=0,
+                                           reached={n: 0 for n in names}, failed_reached={n: 0 for n in names}))
+    row["rollouts"] += 1
+    row["failures"] += int(not r["success"])
+    for name in names:
+      if name in r["reached"]:
+        row["reached"][name] += 1
+        row["failed_reached"][name] += int(not r["success"])
+  return list(rows.values())

@@ -98,3 +98,18 @@ def cells_from_summary(summary: Sequence[Dict], task: str) -> Dict[Tuple[str, st
   """{(level, encoder): (mean, std)} of one task from summary rows ({task, encoder, level, mean, std, ...})."""
   return {(r["level"], r["encoder"]): (r["mean"], r["std"]) for r in summary
           if r["task"] == task and r.get("mean") is not None}
+
+
+def render_milestones(rows: Sequence[Dict], names: Sequence[str]) -> str:
+  """How far rollouts got (roboshape.eval.results.milestone_counts rows): a Markdown table, one row per level, a
+  column per milestone with the share of rollouts that reached it, then the same over the failed rollouts."""
+  def share(k: int, n: int) -> str:
+    return f"{k / n:.2f} ({k}/{n})" if n else "-"
+  lines = ["| | rollouts | " + " | ".join(names) + " | failed | " + " | ".join(f"failed: {n}" for n in names) + " |",
+           "| --- |" + " --- |" * (2 * len(names) + 2)]
+  for r in rows:
+    lines.append(f"| {level_name(r['level'])} | {r['rollouts']} | "
+                 + " | ".join(share(r["reached"][n], r["rollouts"]) for n in names)
+                 + f" | {r['failures']} | "
+                 + " | ".join(share(r["failed_reached"][n], r["failures"]) for n in names) + " |")
+  return "\n".join(lines) + "\n"

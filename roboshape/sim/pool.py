@@ -25,6 +25,7 @@ from typing import Dict, Iterable, Iterator, List, Optional, Sequence
 
 import numpy as np
 
+from roboshape import envs
 from roboshape.errors import UserError
 from roboshape.sim.spec import EnvSpec, check_seeds
 
@@ -95,6 +96,7 @@ def _stack(frames: List[dict]) -> Dict[str, np.ndarray]:
   """The workers' frame dicts stacked into arrays [N, ...] (with depth where the spec asks for it)."""
   depth = {"depth": np.stack([o["depth"] for o in frames])} if "depth" in frames[0] else {}
   return dict(**depth, image=np.stack([o["image"] for o in frames]),
+              reached=np.stack([o["reached"] for o in frames]).astype(bool),
               segmentation=np.stack([o["segmentation"] for o in frames]),
               state=np.stack([o["state"] for o in frames]).astype(np.float32),
               success=np.array([o["success"] for o in frames], bool),
@@ -120,6 +122,7 @@ class SimPool:
     if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
       raise UserError(f"sim.num_workers must be an int >= 0 (0: one per CPU core), got {num_workers!r}")
     self.spec = spec
+    self.milestones = envs.MILESTONES.get(spec.task, ())   # the names of the frame dicts' `reached` columns
     self.num_envs = num_workers or os.cpu_count() or 1
     self.start_timeout, self.step_timeout, self.episode_timeout = start_timeout, step_timeout, episode_timeout
     self._log_dir = tempfile.mkdtemp(prefix="roboshape_sim_")
@@ -283,8 +286,8 @@ class SimPool:
 
     Returns image uint8 [N, H, W, 3], segmentation uint8 [N, H, W], state float32 [N, envs.state.DIM] (the
     privileged state), depth uint16 [N, H, W] (mm, only with spec.depth), success bool [N], done bool [N]
-    (success or horizon) and elapsed int32 [N]. A done env
-    ignores its action and returns its last observation.
+    (success or horizon), elapsed int32 [N] and reached bool [N, M] (the task's milestones, `self.milestones`,
+    reached since the reset). A done env ignores its action and returns its last observation.
     """
     if self._active == 0:
       raise UserError("pool.step before pool.reset: reset the envs with seeds first")

@@ -7,7 +7,8 @@ never imports TensorFlow or JAX). Requests are (command, argument) tuples; repli
 Commands:
   collect seed    -> the episode dict of roboshape/sim/__init__.py (the oracle expert run from `seed`, with the
                      privileged state; with depth when the spec asks for depth)
-  reset (seed, render) -> one env's frame dict (image, segmentation, state, [depth,] success, done, elapsed);
+  reset (seed, render) -> one env's frame dict (image, segmentation, state, [depth,] success, done, elapsed,
+                     reached: bool [M], the task's milestones reached so far, roboshape.envs.MILESTONES);
                      with render False the camera is not rendered until the next reset: image, segmentation (and
                      depth) are zeros, the state is real (about 4 ms a step instead of 32 ms on a CPU renderer)
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
@@ -47,7 +48,8 @@ class Worker:
     self.horizon = spec["max_episode_steps"] or self.task.HORIZON
     self.expert = experts.make_expert(spec["task"], self.task.num_envs, self.task.device)
     self.env_version = f"{envs.ENV_VERSION}+mani_skill-{mani_skill.__version__}"
-    self._frame = self._depth = self._state = None
+    self._frame = self._depth = self._state = self._start = None
+    self.reached = np.zeros(len(envs.MILESTONES[spec["task"]]), bool)
     self.elapsed, self.success, self.done = 0, False, True
     # Every reset rebuilds the scene, and ManiSkill then runs gc.collect(), which scans every object of this process:
     # about 160 ms of a 230 ms reset. Freezing what start-up built (modules, the env) leaves it out of those scans.
@@ -73,11 +75,14 @@ class Worker:
     obs, _ = self.env.reset(seed=int(seed))
     self.expert.reset()
     self.elapsed, self.success, self.done = 0, False, False
+    self._start = self.task.cube.pose.p.clone()
+    self.reached[:] = False
     return self._observe(obs)
 
   def _step(self, action):
     obs, reward, _, _, info = self.env.step(self.torch.as_tensor(action[None], dtype=self.torch.float32))
     self.elapsed += 1
+    self.reached |= self.task.milestones(self._start)[0].cpu().numpy().astype(bool)
     self.success = bool(info["success"][0])
     self.done = self.success or self.elapsed >= self.horizon
     return self._observe(obs), float(reward[0])
@@ -89,7 +94,7 @@ class Worker:
   def _last_frame(self) -> dict:
     image, seg, state, depth = self._frame
     out = dict(image=image, segmentation=seg, state=state, success=self.success, done=self.done,
-               elapsed=self.elapsed)
+               elapsed=self.elapsed, reached=self.reached.copy())
     if depth is not None:
       out["depth"] = depth
     return out
