@@ -379,6 +379,8 @@ def _check_grid(config) -> None:
     raise UserError(f"grid.publish={publish!r}: use a folder (e.g. \"results/small\") or \"\" to publish nothing.")
   if publish and os.path.exists(publish) and not os.path.isdir(publish):
     raise UserError(f"grid.publish={publish!r} is a file; give a folder for the finished runs' results.")
+  if "lanes" in config.grid:
+    check_int(config, "grid.lanes", 1, "runs at once, each pinned to its share of the CPU cores (roboshape/lanes.py)")
 
 
 def check_single(config) -> None:

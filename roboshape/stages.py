@@ -11,6 +11,8 @@ import json
 import os
 import time
 
+import ml_collections
+
 from roboshape import config_check
 from roboshape import encoders
 from roboshape import rundir
@@ -98,6 +100,8 @@ def run_grid(config, workdir: str) -> None:
   recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
   prints it as a "skipped: <reason>" line. Every run's config and workdir are checked before the first one starts.
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
+  With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
+  go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt).
   """
   config_check.check(config)
   runs = list(grid_configs(config, workdir))
@@ -105,27 +109,72 @@ def run_grid(config, workdir: str) -> None:
   for _, _, sub, sub_dir in runs:
     check_workdir(sub, sub_dir)
   rundir.save_config(config, workdir)
-  for task, encoder, sub, sub_dir in runs:
-    skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
-    print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
-    try:
-      run(sub, sub_dir)
-    except UserError as e:
-      if encoder == "savi":
-        raise
-      os.makedirs(sub_dir, exist_ok=True)
-      with open(skipped, "w") as f:
-        json.dump({"reason": str(e)}, f)
-      print(f"[roboshape] skipped {task} x {encoder}: {e}", flush=True)
-      continue
-    if os.path.exists(skipped):
-      os.remove(skipped)
-    if config.grid.get("publish") and "evaluate" in sub.stages:
-      from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
-      print(f"[roboshape] published {task} x {encoder} to {publish.publish(sub, sub_dir, config.grid.publish)}",
-            flush=True)
+  lanes = int(config.grid.get("lanes", 1))
+  if lanes > 1:
+    _run_lanes(config, runs, lanes)
+  else:
+    for task, encoder, sub, sub_dir in runs:
+      print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
+      try:
+        run(sub, sub_dir)
+      except UserError as e:
+        _finish_run(config, task, encoder, sub, sub_dir, str(e))
+        continue
+      _finish_run(config, task, encoder, sub, sub_dir, None)
   if "report" in config.stages:
     importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+
+
+def _run_lanes(config, runs, lanes: int) -> None:
+  """The grid's runs in `lanes` parallel lanes, after each task's dataset is collected here."""
+  from roboshape import lanes as lanes_lib  # pylint: disable=import-outside-toplevel
+  collected = set()
+  for task, _, sub, sub_dir in runs:
+    if task not in collected and "collect" in sub.stages:
+      print(f"[roboshape] grid: the {task} dataset first, for its runs to share", flush=True)
+      first = ml_collections.ConfigDict(sub.to_dict())
+      first.stages = ("collect",)
+      run(first, sub_dir)
+    collected.add(task)
+  by_dir = {sub_dir: (task, encoder, sub) for task, encoder, sub, sub_dir in runs}
+  failed = []
+
+  def on_done(job, code: int, line: str) -> None:
+    task, encoder, sub = by_dir[job[2]]
+    if code == 0:
+      _finish_run(config, task, encoder, sub, job[2], None)
+      return
+    message = line.removeprefix("roboshape: error: ") if code == 2 else f"exit status {code}: {line}"
+    if code == 2 and encoder != "savi":
+      _finish_run(config, task, encoder, sub, job[2], message)
+    else:
+      failed.append(f"{task} x {encoder} ({message})")
+
+  lanes_lib.run_parallel([(f"{task} x {encoder}", sub, sub_dir) for task, encoder, sub, sub_dir in runs], lanes,
+                         on_done)
+  if failed:
+    raise UserError(f"grid runs failed: {'; '.join(failed)}; their logs are <run>/{lanes_lib.LOG_FILE}, and the "
+                    "same command resumes them.")
+
+
+def _finish_run(config, task: str, encoder: str, sub, sub_dir: str, error) -> None:
+  """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi;
+  a run that ended well loses an old SKIPPED.json and is published when the grid publishes."""
+  skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
+  if error is not None:
+    if encoder == "savi":
+      raise UserError(error)
+    os.makedirs(sub_dir, exist_ok=True)
+    with open(skipped, "w") as f:
+      json.dump({"reason": error}, f)
+    print(f"[roboshape] skipped {task} x {encoder}: {error}", flush=True)
+    return
+  if os.path.exists(skipped):
+    os.remove(skipped)
+  if config.grid.get("publish") and "evaluate" in sub.stages:
+    from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+    print(f"[roboshape] published {task} x {encoder} to {publish.publish(sub, sub_dir, config.grid.publish)}",
+          flush=True)
 
 
 def _import_stage(name: str, module_name: str):

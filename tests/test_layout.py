@@ -33,7 +33,8 @@ LAYERS = {
     "roboshape.train": 5,
     "roboshape.eval": 6,
     "roboshape.grid": 7, "roboshape.config_check": 7,
-    "roboshape.stages": 8, "roboshape.status": 8, "roboshape.cli": 8, "roboshape": 8, "launch": 8, "configs": 8,
+    "roboshape.stages": 8, "roboshape.lanes": 8, "roboshape.status": 8, "roboshape.cli": 8, "roboshape": 8,
+    "launch": 8, "configs": 8,
     "benchmarks": 9, "scripts": 9,
 }
 SCANNED = ("roboshape", "configs", "benchmarks", "scripts", "launch.py")

@@ -1,0 +1,127 @@
+"""A grid's runs in parallel lanes: up to `grid.lanes` runs at once, each a child process pinned to its own cores.
+
+On the 2-core CPU machine two runs pinned one per core do more work than one run on both cores: a `:small`
+behaviour-cloning step takes 0.70 s on one core and 0.50 s on two (2.9 vs 2.0 steps/s for the machine), and the
+other stages scale no better. `configs/reproduce.py:small` therefore runs two lanes.
+
+  run_parallel(jobs, lanes, on_done)     # jobs: (name, config, run_dir); on_done(job, exit code, last line)
+
+Each job is a child `python -m roboshape.lanes RUN_DIR`, which reads its config (pickled) on stdin and runs it as
+`roboshape.stages.run(config, RUN_DIR)`, so it resumes and fails exactly as `launch.py` would; everything it prints
+goes to RUN_DIR/log.txt (appended across resumes). Lane i owns the cores cores[i::lanes] of this process's affinity,
+and a job's simulator workers inherit them. Ctrl-C or SIGTERM interrupts every child (each stops the way an
+interrupted run stops and resumes the same way) and re-raises here.
+"""
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable, List, Sequence, Set, Tuple
+
+from roboshape.errors import UserError
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LOG_FILE = "log.txt"
+Job = Tuple[str, object, str]     # (name, config, run_dir)
+
+
+def lane_cores(lanes: int) -> List[Set[int]]:
+  """The cores of each lane: this process's cores dealt round-robin, at most one lane per core."""
+  cores = sorted(os.sched_getaffinity(0))
+  lanes = max(1, min(int(lanes), len(cores)))
+  return [set(cores[i::lanes]) for i in range(lanes)]
+
+
+def last_line(path: str) -> str:
+  """The last non-empty line of a log (a failed child's one-line error), or "" without one."""
+  try:
+    with open(path, "rb") as f:
+      f.seek(0, os.SEEK_END)
+      f.seek(max(0, f.tell() - 8192))
+      lines = [l.strip() for l in f.read().decode("utf-8", "replace").replace("\r", "\n").splitlines()]
+  except OSError:
+    return ""
+  lines = [l for l in lines if l]
+  return lines[-1] if lines else ""
+
+
+def _start(job: Job, cores: Set[int]) -> subprocess.Popen:
+  _, config, run_dir = job
+  os.makedirs(run_dir, exist_ok=True)
+  env = dict(os.environ)
+  env["PYTHONPATH"] = _ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+  with open(os.path.join(run_dir, LOG_FILE), "ab") as log:
+    child = subprocess.Popen([sys.executable, "-m", "roboshape.lanes", run_dir], stdin=subprocess.PIPE,
+                             stdout=log, stderr=subprocess.STDOUT, env=env,
+                             preexec_fn=lambda: os.sched_setaffinity(0, cores))
+  child.stdin.write(pickle.dumps(config))
+  child.stdin.close()
+  return child
+
+
+def _interrupt(children) -> None:
+  """SIGINT to every child (each stops as an interrupted run does), then a kill for any still alive after 60 s."""
+  for child in children:
+    if child.poll() is None:
+      child.send_signal(signal.SIGINT)
+  deadline = time.time() + 60
+  for child in children:
+    try:
+      child.wait(timeout=max(0.1, deadline - time.time()))
+    except subprocess.TimeoutExpired:
+      child.kill()
+      child.wait()
+
+
+def run_parallel(jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, str], None],
+                 poll_seconds: float = 2.0) -> None:
+  """Runs the jobs in order, up to `lanes` at once, one lane per share of the cores (`lane_cores`); calls
+  `on_done(job, exit code, last line of its log)` as each one ends (exit code 2: a one-line UserError)."""
+  free = lane_cores(lanes)
+  pending = list(jobs)
+  running = []      # (job, child, cores, start)
+  try:
+    while pending or running:
+      while pending and free:
+        job, cores = pending.pop(0), free.pop(0)
+        print(f"[roboshape] lane on cores {sorted(cores)}: {job[0]} -> {job[2]} (log: "
+              f"{os.path.join(job[2], LOG_FILE)})", flush=True)
+        running.append((job, _start(job, cores), cores, time.time()))
+      time.sleep(poll_seconds)
+      for entry in [e for e in running if e[1].poll() is not None]:
+        job, child, cores, start = entry
+        running.remove(entry)
+        free.append(cores)
+        line = last_line(os.path.join(job[2], LOG_FILE))
+        print(f"[roboshape] {job[0]} ended in {time.time() - start:.0f}s with status {child.returncode}"
+              + ("" if child.returncode == 0 else f": {line}"), flush=True)
+        on_done(job, child.returncode, line)
+  except BaseException:
+    _interrupt([child for _, child, _, _ in running])
+    raise
+
+
+def main(argv) -> int:
+  """The child: `python -m roboshape.lanes RUN_DIR`, its config pickled on stdin."""
+  if len(argv) != 2:
+    print("usage: python -m roboshape.lanes RUN_DIR < pickled config (started by roboshape.lanes.run_parallel)",
+          file=sys.stderr)
+    return 2
+  config = pickle.load(sys.stdin.buffer)
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  print(f"[roboshape] {config.name} on cores {sorted(os.sched_getaffinity(0))}, pid {os.getpid()}", flush=True)
+  try:
+    stages.run(config, argv[1])
+  except UserError as e:
+    print(f"roboshape: error: {e}", file=sys.stderr, flush=True)
+    return 2
+  except KeyboardInterrupt:
+    print("roboshape: interrupted; run the same command to resume", file=sys.stderr, flush=True)
+    return 128 + signal.SIGINT
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv))
