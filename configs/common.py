@@ -179,16 +179,6 @@ def ae_config(variant: str) -> ml_collections.ConfigDict:
   ))
 
 
-def objects_config(variant: str) -> ml_collections.ConfigDict:
-  """The `objects` control encoder (roboshape/encoders/objects.py)."""
-  del variant
-  return ml_collections.ConfigDict(dict(
-      # a diagnostic, off in every experiment: True appends to each token a one-hot of its object id, so the policy
-      # knows which object is which; comparing the two tells an unordered set's cost (results/small/push_objects)
-      ids=False,
-  ))
-
-
 def baseline_config(variant: str) -> ml_collections.ConfigDict:
   """Frozen global encoders loaded from official checkpoints (roboshape/baselines)."""
   del variant
@@ -287,7 +277,6 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
       data=data_config(scale),
       savi=savi_config(scale),
       ae=ae_config(scale),
-      objects=objects_config(scale),
       baselines=baseline_config(scale),
       policy=policy_config(scale),
       eval=eval_config(scale),

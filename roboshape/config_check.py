@@ -31,7 +31,6 @@ from roboshape.sim import spec as spec_lib
 _ENCODER_SECTIONS = {
     "savi": ("savi",),
     "ae": ("savi", "ae"),             # the AE is trained with SAVi's settings (roboshape/train/pretrain_ae.py)
-    "objects": ("objects",),
     "r3m": ("baselines.r3m",),
     "dino": ("baselines.dino",),
 }
@@ -206,12 +205,6 @@ def check_ints(config, path: str, low: int, what: str, length: int = 0) -> Tuple
   return tuple(int(v) for v in value)
 
 
-def _check_bool(config, path: str, what: str) -> None:
-  value = _value(config, path)
-  if not isinstance(value, bool):
-    raise UserError(f"{path}={value!r}: use True or False ({what}).")
-
-
 def _check_tables(config, section: str) -> None:
   for path, low, what in _INTS.get(section, ()):
     check_int(config, path, low, what)
@@ -358,7 +351,6 @@ def _check_dino(config) -> None:
 _SECTION_CHECKS = {
     "savi": _check_savi,
     "ae": lambda config: _check_tables(config, "ae"),
-    "objects": lambda config: _check_bool(config, "objects.ids", "a one-hot of each token's object id"),
     "baselines.r3m": _check_r3m,
     "baselines.dino": _check_dino,
 }

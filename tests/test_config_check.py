@@ -190,10 +190,6 @@ def test_a_section_of_another_encoder_is_not_checked():
   config.baselines.r3m.input_size = 16
   with pytest.raises(UserError, match=r"baselines\.r3m\.input_size=16"):
     config_check.check(config)
-  config = common.get_config("push", "objects", "tiny")
-  config.objects = {"ids": "yes"}
-  with pytest.raises(UserError, match=r"objects\.ids='yes': use True or False"):
-    config_check.check(config)
 
 
 def test_an_unwritable_workdir_is_refused_before_config_json(tmp_path, monkeypatch):

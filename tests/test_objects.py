@@ -108,15 +108,6 @@ def test_the_encoder_is_registered_and_encodes_dict_batches():
                              objects.tokens(image, seg, depth)[:, kept], rtol=1e-6)
   np.testing.assert_allclose(np.asarray(with_depth.encode_episode({k: v[0] for k, v in videos.items()})),
                              np.asarray(with_depth.encode_batch(videos))[0], rtol=1e-6)
-  # The ids diagnostic: each present token followed by the one-hot of its place in `kept`, absent ones all zero.
-  config.objects.ids = True
-  with_ids = encoders.build_encoder(config, "")
-  assert with_ids.token_dim == D + len(kept) and with_ids.identity != with_depth.identity
-  out = np.asarray(with_ids.encode_batch(videos)).reshape(10, len(kept), D + len(kept))
-  plain = np.asarray(objects.tokens(image, seg, depth))[:, kept]
-  np.testing.assert_allclose(out[..., :D], plain, rtol=1e-6)
-  present = plain[..., 0] == 1                                           # seg ids 0..8: kept tokens 0..8 present
-  np.testing.assert_array_equal(out[..., D:], present[..., None] * np.eye(len(kept))[None])
 
 
 def test_all_zero_tokens_are_masked_out_of_the_trunk():

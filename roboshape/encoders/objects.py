@@ -16,11 +16,6 @@ Token layout (float32 [DIM], DIM = 12; coordinates are pixel centres mapped to [
   [8:11]  colour     mean RGB of the mask's pixels, in [0, 1]
   [11]    depth      mean camera depth of the mask's pixels in metres (0 without depth)
 
-Ids (a diagnostic, `objects.ids=True`; off in every experiment). Each token gets a one-hot of its id over the ids
-kept (DIM + len(kept) features), so the policy knows which object is which: the same decomposition without the
-cost of an unordered set. Comparing the two runs separates "is a perfect decomposition enough" from "can the trunk
-find the cube, goal and hand in a set" (results/small/push_objects/README.md).
-
 Depth. The registered Kind reads ("image", "segmentation"): the inputs every dataset stores. An encoder built for a
 config with `env.depth` true (the :small variants store depth) also reads "depth" (uint16 millimetres): its
 `FrozenEncoder.inputs` is ("image", "segmentation", "depth"), and the cache feeds it from the dataset. Without
@@ -113,32 +108,24 @@ def token_ids(max_distractors: int) -> tuple:
   return tuple(range(ids.FIRST_DISTRACTOR + max_distractors)) + (ids.HAND,)
 
 
-def _step(kept, with_ids, params, carry, obs):
+def _step(kept, params, carry, obs):
   """obs {"image": uint8 [B, H, W, 3], "segmentation": [B, H, W], ("depth": uint16 [B, H, W])} ->
-  (tokens float32 [B, len(kept), DIM] of the ids `kept`, carry); with_ids: each present token followed by the
-  one-hot of its place in `kept` ([B, len(kept), DIM + len(kept)])."""
-  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  (tokens float32 [B, len(kept), DIM] of the ids `kept`, carry)."""
   del params
-  out = tokens(obs["image"], obs["segmentation"], obs.get("depth"))[:, list(kept)]
-  if with_ids:
-    one_hot = jnp.broadcast_to(jnp.eye(len(kept), dtype=out.dtype), out.shape[:1] + (len(kept),) * 2)
-    out = jnp.concatenate([out, one_hot * out[..., :1]], axis=-1)          # absent tokens stay all zero
-  return out, carry
+  return tokens(obs["image"], obs["segmentation"], obs.get("depth"))[:, list(kept)], carry
 
 
 def _build(config, workdir: str):
   """The encoder: the tokens of `token_ids(config.env.max_distractors)` (config None: every id); it reads depth too
-  when `config.env.depth` is true (config None: no depth), and appends the ids' one-hots with `config.objects.ids`."""
+  when `config.env.depth` is true (config None: no depth)."""
   del workdir
   from roboshape.models.encoder import FrozenEncoder  # pylint: disable=import-outside-toplevel
   depth = bool(config is not None and config.env.get("depth", False))
   kept = token_ids(int(config.env.max_distractors)) if config is not None else tuple(range(NUM_IDS))
-  with_ids = bool(config is not None and config.get("objects", {}).get("ids", False))
   inputs = ("image", "segmentation") + (("depth",) if depth else ())
-  layout = hashlib.sha1(f"ids {kept}: {describe()}{' + id one-hot' if with_ids else ''}".encode()).hexdigest()[:12]
-  return FrozenEncoder(name="objects", params={}, step=functools.partial(_step, kept, with_ids),
-                       init_state=lambda batch_size: (), num_tokens=len(kept),
-                       token_dim=DIM + (len(kept) if with_ids else 0),
+  layout = hashlib.sha1(f"ids {kept}: {describe()}".encode()).hexdigest()[:12]
+  return FrozenEncoder(name="objects", params={}, step=functools.partial(_step, kept),
+                       init_state=lambda batch_size: (), num_tokens=len(kept), token_dim=DIM,
                        identity=f"objects:{layout}:{'+'.join(inputs)}", inputs=inputs)
 
 
