@@ -65,9 +65,13 @@ def _child(out_path: str) -> None:
     facts["success"][name] = {case: place_cube(task, p) for case, p in cases.items()}
     expert = experts.make_expert(name, 1)
     results, seen = [], []
+    milestones = []    # (milestones holding at reset, milestones reached at some step) per expert episode
     for seed in EXPERT_SEEDS:
       env.reset(seed=seed)
       expert.reset()
+      start = task.cube.pose.p.clone()
+      at_reset = task.milestones(start)[0].numpy()
+      reached = np.zeros_like(at_reset)
       ok = False
       for _ in range(task.HORIZON):
         state = task.privileged_state()
@@ -75,11 +79,14 @@ def _child(out_path: str) -> None:
         seen.append(({k: v.clone() for k, v in state.items()}, action.clone()))
         assert torch.all(action.abs() <= 1.0)
         _, _, _, _, info = env.step(action)
+        reached |= task.milestones(start)[0].numpy()
         if bool(info["success"][0]):
           ok = True
           break
       results.append(ok)
+      milestones.append((at_reset.tolist(), reached.tolist()))
     facts["expert"][name] = results
+    facts.setdefault("milestones", {})[name] = milestones
     # Memoryless: a fresh expert shown the same states in reverse order repeats every action of the episodes.
     fresh = experts.make_expert(name, 1)
     facts.setdefault("memoryless", {})[name] = max(
@@ -225,6 +232,12 @@ def test_success_detection_on_scripted_states(facts):
 @pytest.mark.parametrize("task", envs.TASKS)
 def test_expert_solves_the_task(facts, task):
   assert facts["expert"][task] == [True] * len(EXPERT_SEEDS)
+
+
+@pytest.mark.parametrize("task", envs.TASKS)
+def test_no_milestone_at_reset_and_the_expert_reaches_every_one(facts, task):
+  m = len(envs.MILESTONES[task])
+  assert facts["milestones"][task] == [([False] * m, [True] * m)] * len(EXPERT_SEEDS)
 
 
 @pytest.mark.parametrize("task", envs.TASKS)

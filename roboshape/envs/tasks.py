@@ -78,12 +78,13 @@ class PushEnv(scene.RoboShapeEnv):
   MILESTONES = envs.MILESTONES["push"]
 
   def milestones(self, start: torch.Tensor) -> torch.Tensor:
-    """bool [N, 3]: the cube moved MOVED from `start` [N, 3]; it is at most half its reset distance from the
-    target's centre; it is on the target (success)."""
+    """bool [N, 3]: the cube moved MOVED from `start` [N, 3]; it covered half its reset distance to the target's
+    edge (so on the target implies halfway); it is on the target (success)."""
     cube, goal = self.cube.pose.p[:, :2], self.goal_pos[:, :2].to(self.device)
     dist, start_dist = torch.linalg.norm(cube - goal, dim=1), torch.linalg.norm(start[:, :2] - goal, dim=1)
     moved = torch.linalg.norm(cube - start[:, :2], dim=1) >= MOVED
-    return torch.stack([moved, dist <= 0.5 * start_dist, dist <= self.SUCCESS_DIST], dim=1)
+    halfway = dist <= self.SUCCESS_DIST + 0.5 * (start_dist - self.SUCCESS_DIST)
+    return torch.stack([moved, halfway, dist <= self.SUCCESS_DIST], dim=1)
 
 
 @register_env(ENV_IDS["pick"], max_episode_steps=90)
