@@ -9,9 +9,9 @@ what it finished and a rerun skips it. A record:
 
 `ended` is "success" (the env's success check fired), "horizon" (the episode ran to its step limit) or
 "worker_crash" (the simulator worker died on this rollout more often than allowed: the rollout is reported and
-left out of the statistics). `reached` names the task's milestones (roboshape.envs.MILESTONES) the rollout reached at
-some step; logs written before milestones were recorded have none. Success rates are computed per evaluation seed (over its rollouts), then
-mean +- std (population std, ddof=0) over seeds, as in the paper's tables.
+left out of the statistics). `reached` names the task's milestones (roboshape.envs.MILESTONES) the rollout reached
+at some step; logs written before milestones were recorded have none. Success rates are computed per evaluation
+seed (over its rollouts), then mean +- std (population std, ddof=0) over seeds, as in the paper's tables.
 """
 import csv
 import io
