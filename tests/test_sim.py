@@ -92,7 +92,7 @@ def test_closed_loop_replays_an_expert_episode_bit_for_bit(pool, episodes):
     out = pool.step(np.stack([e["action"][t], np.zeros(7, np.float32)]))
     assert out["elapsed"].tolist() == [t + 1, t + 1]
   assert out["success"].tolist() == [True, False] and out["done"].tolist() == [True, False]
-  # Place's milestones: the expert's episode reached every one (grasped, lifted, over the bin, in it), the still arm none.
+  # Place's milestones: the expert's episode reached all (grasped, lifted, over the bin, in it), the still arm none.
   assert pool.milestones == ("grasped", "lifted", "over_bin", "in_bin")
   assert out["reached"].tolist() == [[True] * 4, [False] * 4]
   np.testing.assert_array_equal(out["image"][0], e["image"][-1])
