@@ -4,8 +4,9 @@ Success is read from the simulator state in `evaluate()`, with the thresholds wr
 Horizons (`HORIZON`, control steps at 20 Hz) are at least 1.5x the expert's 95th-percentile episode length
 (measured by benchmarks/expert_success.py).
 
-Milestones (their names: roboshape.envs.MILESTONES). Each task's `milestones(start)` says which hold at the current
-step, given the cube's position at reset; closed-loop evaluation records which ones a rollout ever reached.
+Milestones (their names: roboshape.envs.MILESTONES). Each task's `milestones(start, info)` says which hold at the
+current step, given the cube's position at reset and the step's `evaluate()` info (nothing is computed twice);
+closed-loop evaluation records which ones a rollout ever reached.
 """
 from typing import List, Tuple
 
@@ -27,9 +28,9 @@ MOVED = 0.02    # the cube moved this far (m, in the table plane) from where it 
 LIFTED = 0.03   # the grasped cube's centre this far (m) above its height at reset
 
 
-def _lifted(env, start: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-  """(grasped, grasped and lifted) bool [N]."""
-  grasped = env.agent.is_grasping(env.cube)
+def _lifted(env, start: torch.Tensor, info: dict) -> Tuple[torch.Tensor, torch.Tensor]:
+  """(grasped, grasped and lifted) bool [N], from the step's info["is_grasped"]."""
+  grasped = info["is_grasped"]
   return grasped, grasped & (env.cube.pose.p[:, 2] - start[:, 2] >= LIFTED)
 
 
@@ -77,14 +78,14 @@ class PushEnv(scene.RoboShapeEnv):
 
   MILESTONES = envs.MILESTONES["push"]
 
-  def milestones(self, start: torch.Tensor) -> torch.Tensor:
+  def milestones(self, start: torch.Tensor, info: dict) -> torch.Tensor:
     """bool [N, 3]: the cube moved MOVED from `start` [N, 3]; it covered half its reset distance to the target's
     edge (so on the target implies halfway); it is on the target (success)."""
-    cube, goal = self.cube.pose.p[:, :2], self.goal_pos[:, :2].to(self.device)
-    dist, start_dist = torch.linalg.norm(cube - goal, dim=1), torch.linalg.norm(start[:, :2] - goal, dim=1)
-    moved = torch.linalg.norm(cube - start[:, :2], dim=1) >= MOVED
-    halfway = dist <= self.SUCCESS_DIST + 0.5 * (start_dist - self.SUCCESS_DIST)
-    return torch.stack([moved, halfway, dist <= self.SUCCESS_DIST], dim=1)
+    goal = self.goal_pos[:, :2].to(self.device)
+    start_dist = torch.linalg.norm(start[:, :2] - goal, dim=1)
+    moved = torch.linalg.norm(self.cube.pose.p[:, :2] - start[:, :2], dim=1) >= MOVED
+    halfway = info["cube_to_goal"] <= self.SUCCESS_DIST + 0.5 * (start_dist - self.SUCCESS_DIST)
+    return torch.stack([moved, halfway, info["success"]], dim=1)
 
 
 @register_env(ENV_IDS["pick"], max_episode_steps=90)
@@ -112,10 +113,10 @@ class PickEnv(scene.RoboShapeEnv):
 
   MILESTONES = envs.MILESTONES["pick"]
 
-  def milestones(self, start: torch.Tensor) -> torch.Tensor:
+  def milestones(self, start: torch.Tensor, info: dict) -> torch.Tensor:
     """bool [N, 3]: the cube is grasped; grasped and LIFTED above its reset height; held at the point (success)."""
-    grasped, lifted = _lifted(self, start)
-    return torch.stack([grasped, lifted, self.evaluate()["success"]], dim=1)
+    grasped, lifted = _lifted(self, start, info)
+    return torch.stack([grasped, lifted, info["success"]], dim=1)
 
 
 @register_env(ENV_IDS["place"], max_episode_steps=120)
@@ -168,11 +169,10 @@ class PlaceEnv(scene.RoboShapeEnv):
 
   MILESTONES = envs.MILESTONES["place"]
 
-  def milestones(self, start: torch.Tensor) -> torch.Tensor:
+  def milestones(self, start: torch.Tensor, info: dict) -> torch.Tensor:
     """bool [N, 4]: the cube is grasped; grasped and LIFTED above its reset height; its centre is over the bin's
     inner square (at any height); it rests in the bin, released (success)."""
-    grasped, lifted = _lifted(self, start)
-    info = self.evaluate()
+    grasped, lifted = _lifted(self, start, info)
     return torch.stack([grasped, lifted, info["inside"], info["success"]], dim=1)
 
 

@@ -82,7 +82,7 @@ class Worker:
   def _step(self, action):
     obs, reward, _, _, info = self.env.step(self.torch.as_tensor(action[None], dtype=self.torch.float32))
     self.elapsed += 1
-    self.reached |= self.task.milestones(self._start)[0].cpu().numpy().astype(bool)
+    self.reached |= self.task.milestones(self._start, info)[0].cpu().numpy().astype(bool)
     self.success = bool(info["success"][0])
     self.done = self.success or self.elapsed >= self.horizon
     return self._observe(obs), float(reward[0])
