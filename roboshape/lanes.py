@@ -20,6 +20,7 @@ import sys
 import time
 from typing import Callable, List, Sequence, Set, Tuple
 
+from roboshape import fileio
 from roboshape.errors import UserError
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -37,14 +38,10 @@ def lane_cores(lanes: int) -> List[Set[int]]:
 def last_line(path: str) -> str:
   """The last non-empty line of a log (a failed child's one-line error), or "" without one."""
   try:
-    with open(path, "rb") as f:
-      f.seek(0, os.SEEK_END)
-      f.seek(max(0, f.tell() - 8192))
-      lines = [l.strip() for l in f.read().decode("utf-8", "replace").replace("\r", "\n").splitlines()]
+    lines = fileio.tail_lines(path)
   except OSError:
     return ""
-  lines = [l for l in lines if l]
-  return lines[-1] if lines else ""
+  return lines[-1].strip() if lines else ""
 
 
 def _start(job: Job, cores: Set[int]) -> subprocess.Popen:

@@ -26,6 +26,7 @@ from typing import Dict, Iterable, Iterator, List, Optional, Sequence
 import numpy as np
 
 from roboshape import envs
+from roboshape import fileio
 from roboshape.errors import UserError
 from roboshape.sim.spec import EnvSpec, check_seeds
 
@@ -38,13 +39,9 @@ class SimWorkerError(RuntimeError):
 
 def _tail(path: str, max_lines: int = 15, max_chars: int = 2000) -> str:
   try:
-    with open(path, "rb") as f:
-      f.seek(0, os.SEEK_END)
-      f.seek(max(0, f.tell() - 16384))
-      text = f.read().decode("utf-8", "replace")
+    lines = [l for l in fileio.tail_lines(path) if "WARNING" not in l]
   except OSError:
     return "(no stderr)"
-  lines = [l for l in text.splitlines() if l.strip() and "WARNING" not in l]
   return "\n".join(lines[-max_lines:])[-max_chars:] or "(empty stderr)"
 
 
