@@ -10,6 +10,7 @@ import pytest
 from configs import common
 from configs import reproduce
 from roboshape import envs
+from roboshape import rundir
 from roboshape import stages
 from roboshape.eval import closed_loop
 from roboshape.eval import report
@@ -267,6 +268,19 @@ def test_evaluate_resumes_after_interrupt(tmp_path):
   # A log of another policy is set aside, not resumed.
   log = results_lib.ResultLog(str(tmp_path / "eval" / "results.jsonl"), fingerprint="other")
   assert log.records == [] and os.path.exists(tmp_path / "eval" / "results.jsonl.stale")
+
+
+def test_the_fingerprint_names_the_checkpoints_and_the_control_settings(tmp_path):
+  ckpt = rundir.checkpoints(rundir.policy_dir(str(tmp_path)))
+  os.makedirs(os.path.join(ckpt, "500"))
+  base = closed_loop.policy_fingerprint(str(tmp_path))
+  control = dict(history=0, action="mean", noise=0.1, ensemble_decay=0.01)
+  same = closed_loop.policy_fingerprint(str(tmp_path), control=dict(reversed(list(control.items()))))
+  assert same == closed_loop.policy_fingerprint(str(tmp_path), control=control) != base
+  assert closed_loop.policy_fingerprint(str(tmp_path), control=dict(control, action="sample")) != same
+  assert closed_loop.policy_fingerprint(str(tmp_path), control=dict(control, history=1)) != same
+  os.makedirs(os.path.join(ckpt, "1000"))
+  assert closed_loop.policy_fingerprint(str(tmp_path)) != base      # another checkpoint: another policy
 
 
 def _real_sim():

@@ -70,6 +70,16 @@ def test_every_experiment_config_loads():
       assert (config.task, config.encoder) == (task, encoder)
 
 
+def test_place_policies_are_run_with_a_sampled_mode_and_one_frame_whatever_the_encoder():
+  for encoder in encoders.names():
+    for variant in common.VARIANTS:
+      place = common.get_config("place", encoder, variant).policy.eval
+      assert (place.action, place.history) == ("sample", 1)
+      for task in ("push", "pick"):
+        control = common.get_config(task, encoder, variant).policy.eval
+        assert (control.action, control.history) == ("mean", 0)
+
+
 def test_chunk_variant_turns_on_action_chunking():
   assert common.get_config("pick", "savi", "small").policy.chunk == 1
   chunked = common.get_config("pick", "savi", "small_chunk")

@@ -31,6 +31,7 @@ re-runs the logged rollouts whose planned video is missing, to record it (their 
 import collections
 import dataclasses
 import hashlib
+import json
 import os
 import time
 from typing import Callable, Dict, Iterable, List, Optional, Sequence
@@ -176,11 +177,15 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
   return x if len(x) == n else np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:], x.dtype)])
 
 
-def policy_fingerprint(workdir: str, train_seed=None) -> str:
-  """Identifies the trained policy (its checkpoint steps and their times): results of another policy are stale."""
+def policy_fingerprint(workdir: str, train_seed=None, control=None) -> str:
+  """Identifies the trained policy (its checkpoint steps and their times) and how it is run (`control`, the
+  config.policy.eval settings: history, action read-out): results of another policy, or of the same one run
+  otherwise, are stale."""
   ckpt = rundir.checkpoints(rundir.policy_dir(workdir, train_seed))
   entries = sorted(os.listdir(ckpt)) if os.path.isdir(ckpt) else []
   text = ";".join(f"{e}:{int(os.path.getmtime(os.path.join(ckpt, e)))}" for e in entries)
+  if control:
+    text += ";" + json.dumps(dict(control), sort_keys=True)
   return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
@@ -277,7 +282,7 @@ def run(config, workdir: str) -> None:
   make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
   for i, train_seed in enumerate(rundir.train_seeds(config)):
     policy = bc.load_policy(workdir, train_seed=train_seed)
-    evaluate(config, workdir, policy, make_pool, SimWorkerError, policy_fingerprint(workdir, train_seed),
+    evaluate(config, workdir, policy, make_pool, SimWorkerError, policy_fingerprint(workdir, train_seed, config.policy.eval.to_dict()),
              train_seed=train_seed, videos_per_level=config.eval.videos_per_level if i == 0 else 0)
 
 
