@@ -108,8 +108,8 @@ class FakePolicy:
   def reset(self, batch_size=1):
     self.batch_size = batch_size
 
-  def reset_slots(self, indices):
-    assert max(indices) < self.batch_size
+  def reset_slots(self, indices, seeds=None):
+    assert max(indices) < self.batch_size and (seeds is None or len(seeds) == len(indices))
 
   def act_batch(self, frames):
     self.calls += 1

@@ -253,6 +253,24 @@ def test_temporal_ensembling_of_chunks():
     np.testing.assert_allclose(actions[t], expected, atol=1e-5)
 
 
+def test_a_sampled_episode_depends_on_its_seed_alone():
+  net = policy_lib.PolicyNet(width=8, num_layers=1, num_heads=1, dropout=0.0, max_history=2, num_modes=3)
+  params = jax.jit(net.init)(jax.random.PRNGKey(0), jnp.zeros((1, 2, K, D)), jnp.zeros((1, 1), jnp.int32))
+  policy = policy_lib.Policy(net, params, _toy_encoder(), policy_lib.ControlSpec(history=2, action="sample",
+                                                                                noise=1.0), [1.0] * 7, [0.0] * 7)
+  frames = np.random.default_rng(0).integers(0, 255, (3, RES, RES, 3), dtype=np.uint8)
+  policy.reset(batch_size=1, seeds=[1000])
+  alone = [policy.act(f) for f in frames]
+  policy.reset(batch_size=2, seeds=[7, 8])
+  policy.act_batch(np.stack([frames[0], frames[0]]))               # another episode ran in slot 1 before
+  policy.reset_slots([1], seeds=[1000])
+  paired = [policy.act_batch(np.stack([frames[(t + 1) % 3], f]))[1] for t, f in enumerate(frames)]
+  np.testing.assert_allclose(paired, alone, atol=1e-5)              # same seed, same draws, whatever its company
+  policy.reset(batch_size=1, seeds=[1001])
+  other = [policy.act(f) for f in frames]
+  assert not np.allclose(other, alone, atol=1e-3)                   # another seed, other draws
+
+
 def test_training_seeds_train_one_policy_each_and_resume_skips(run, monkeypatch, capsys):
   monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: run["encoder"])
   config = _config(steps=20)

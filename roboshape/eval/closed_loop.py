@@ -89,7 +89,8 @@ def run_rollouts(pool, policy, rollouts: Sequence[Rollout], on_done: OnDone, rec
       other observation keys the policy reads, success, done, elapsed), and `restart()` (the sim bridge's pool, or
       a fake in tests). `render` says per env whether its camera is rendered: always for a policy that reads one
       of the camera's keys, else (a `state` policy) only for the recorded rollouts, so the others pay no rendering.
-    policy: has `reset(batch_size)`, `reset_slots(indices)`, `act_batch(obs) -> [B,7]` (obs: a dict of the keys
+    policy: has `reset(batch_size)`, `reset_slots(indices, seeds)` (seeds: the rollouts' env seeds, which key
+      a sampling policy's draws), `act_batch(obs) -> [B,7]` (obs: a dict of the keys
       in `policy.inputs`, default ("image",)); it always sees a full batch of `pool.num_envs` observations (a
       short last wave is padded with zeros).
     rollouts: what to run.
@@ -152,7 +153,7 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
   camera = any(key in CAMERA_KEYS for key in inputs)  # else only the recorded rollouts are rendered
   out = pool.reset([r.seed for r in wave], render=[camera or r in record for r in wave])
   names = tuple(getattr(pool, "milestones", ()))
-  policy.reset_slots(list(range(n)))
+  policy.reset_slots(list(range(n)), seeds=[r.seed for r in wave] + list(range(k, n)))  # padding: its index
   frames = {i: [out["image"][i]] for i, r in enumerate(wave) if r in record}
   active = np.ones(k, bool)
   while active.any():

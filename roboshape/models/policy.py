@@ -162,7 +162,9 @@ class Carry(NamedTuple):
     history: [B, H, N, D] tokens of the last frames, oldest first; rows >= count are unused.
     count: int32 [B], frames seen since the env's reset.
     chunks: [B, C, C, A] normalised action chunks predicted 0..C-1 steps ago (row j: j steps ago).
-    rng: a PRNG key for sampled actions.
+    rng: [B, 2] one PRNG key per env for sampled actions, set at the env's reset from the policy's seed and the
+      episode's seed, so an episode's sampled actions depend on nothing else (not on which envs share its batch,
+      nor on what ran before it: an evaluation resumed after a kill repeats them).
   """
   enc_state: Any
   history: jax.Array
@@ -199,11 +201,12 @@ def control_step(net: PolicyNet, spec: ControlSpec, encoder_step: Callable, norm
   history = history.at[jnp.arange(b), slot].set(tokens.astype(history.dtype))
   gmm = net.apply(params, history, slot[:, None], train=False)
   gmm = jax.tree.map(lambda v: v[:, 0], gmm)                                        # [B, C, M, A] leaves
-  rng, sample_rng = jax.random.split(carry.rng)
+  keys = jax.vmap(jax.random.split)(carry.rng)                                      # [B, 2, 2]
+  rng = keys[:, 0]
   if spec.action == "mean":
     chunk = heads.gmm_mean(gmm)                                                     # [B, C, A]
   else:
-    chunk = heads.gmm_sample(gmm, sample_rng, spec.noise)
+    chunk = jax.vmap(lambda g, k: heads.gmm_sample(g, k, spec.noise))(gmm, keys[:, 1])
   count = carry.count + 1
   chunks = jnp.roll(carry.chunks, 1, axis=1).at[:, 0].set(chunk)
   c = chunks.shape[1]
@@ -250,33 +253,42 @@ class Policy:
   def batch_size(self) -> int:
     return self.carry.count.shape[0]
 
-  def _fresh(self, batch_size: int) -> Carry:
+  def _fresh(self, batch_size: int, seeds=None) -> Carry:
     """A new carry, on the default device: an encoder whose init_state is sharded otherwise (e.g. over a
-    one-device mesh) would make the second step see another input sharding than the first, and recompile."""
+    one-device mesh) would make the second step see another input sharding than the first, and recompile.
+    `seeds` [batch_size]: each episode's seed, for its sampling key (default: the env's index in the batch)."""
     enc = self.encoder
+    seeds = np.arange(batch_size) if seeds is None else np.asarray(seeds)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(jax.random.PRNGKey(self._seed),
+                                                           jnp.asarray(seeds % 2**32, jnp.uint32))
     return jax.device_put(Carry(
         enc_state=enc.init_state(batch_size),
         history=jnp.zeros((batch_size, self.spec.history, enc.num_tokens, enc.token_dim), self._token_dtype),
         count=jnp.zeros((batch_size,), jnp.int32),
         chunks=jnp.zeros((batch_size, self.net.chunk, self.net.chunk, self.net.action_dim), jnp.float32),
-        rng=jax.random.PRNGKey(self._seed)), jax.devices()[0])
+        rng=keys), jax.devices()[0])
 
-  def reset(self, batch_size: int = 1) -> None:
-    """Starts new episodes in all `batch_size` environments."""
-    self.carry = self._fresh(batch_size)
+  def reset(self, batch_size: int = 1, seeds: Optional[Sequence[int]] = None) -> None:
+    """Starts new episodes in all `batch_size` environments; `seeds` (one per env, e.g. the env seeds) key their
+    sampled actions (action="sample"), by default the env's index."""
+    self.carry = self._fresh(batch_size, seeds)
 
-  def reset_slots(self, indices: Sequence[int]) -> None:
-    """Starts a new episode in the environments `indices` of the batch; the others keep their memory."""
+  def reset_slots(self, indices: Sequence[int], seeds: Optional[Sequence[int]] = None) -> None:
+    """Starts a new episode in the environments `indices` of the batch (with `seeds`, one per index, keying their
+    sampled actions; by default the env's index); the others keep their memory."""
     b = self.batch_size
+    indices = np.asarray(indices, int)
     mask = np.zeros((b,), bool)
-    mask[np.asarray(indices, int)] = True
-    fresh = self._fresh(b)
+    mask[indices] = True
+    episode_seeds = np.arange(b)
+    if seeds is not None:
+      episode_seeds[indices] = np.asarray(seeds, np.int64)
+    fresh = self._fresh(b, episode_seeds)
     def pick(new, old):
       if not hasattr(old, "shape") or old.ndim == 0 or old.shape[0] != b:
         return old
       return jnp.where(mask.reshape((b,) + (1,) * (old.ndim - 1)), new, old)
-    rng = self.carry.rng
-    self.carry = jax.tree.map(pick, fresh, self.carry)._replace(rng=rng)
+    self.carry = jax.tree.map(pick, fresh, self.carry)
 
   @property
   def inputs(self):
