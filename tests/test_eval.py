@@ -265,9 +265,15 @@ def test_evaluate_resumes_after_interrupt(tmp_path):
   assert len(rerun) + len(kept) == len(expected)
   data = json.load(open(tmp_path / "eval" / "results.json"))
   assert {(r["level"], r["seed"]): (r["success"], r["length"]) for r in data["rollouts"]} == expected
-  # A log of another policy is set aside, not resumed.
-  log = results_lib.ResultLog(str(tmp_path / "eval" / "results.jsonl"), fingerprint="other")
-  assert log.records == [] and os.path.exists(tmp_path / "eval" / "results.jsonl.stale")
+  # The log of another policy (or of the same one run otherwise) is set aside with its videos, not resumed.
+  before = sorted(os.listdir(tmp_path / "eval" / "videos"))
+  pools = {}
+  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pools.setdefault(level, FakePool()),
+                       fingerprint="other", slot_videos=False)
+  assert {(level, s) for level, p in pools.items() for s in p.reset_seeds} == set(expected)   # all re-run
+  assert os.path.exists(tmp_path / "eval" / "results.jsonl.stale")
+  assert sorted(os.listdir(tmp_path / "eval" / "videos.stale")) == before and before
+  assert sorted(os.listdir(tmp_path / "eval" / "videos")) == before                         # recorded anew
 
 
 def test_the_fingerprint_names_the_checkpoints_and_the_control_settings(tmp_path):

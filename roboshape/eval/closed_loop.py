@@ -33,6 +33,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import shutil
 import time
 from typing import Callable, Dict, Iterable, List, Optional, Sequence
 
@@ -310,6 +311,9 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
     videos_per_level = config.eval.videos_per_level
   seed_field = {} if train_seed is None else dict(train_seed=int(train_seed))
   video_dir = rundir.videos_dir(workdir)
+  if log.set_aside and os.path.isdir(video_dir):   # the set-aside policy's videos go with its log
+    shutil.rmtree(video_dir + ".stale", ignore_errors=True)
+    os.replace(video_dir, video_dir + ".stale")
   videos.remove_partial(video_dir)       # left by a run killed while writing one
   slot_video = _slot_video_fn(config, workdir) if slot_videos else None
 

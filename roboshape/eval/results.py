@@ -39,12 +39,13 @@ class ResultLog:
     self.path = path
     self.fingerprint = fingerprint
     self.records: List[Dict] = []
+    self.set_aside = False                   # True when the log held another policy's results
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     if os.path.exists(path):
       self.records = _read_jsonl(path)
       if any(r.get("policy", "") != fingerprint for r in self.records):
         os.replace(path, path + ".stale")    # another policy's results: keep them aside, start afresh
-        self.records = []
+        self.records, self.set_aside = [], True
     self._done = {key(r) for r in self.records}
 
   def done(self, level: str, seed: int) -> bool:
