@@ -29,8 +29,9 @@ STAGES = rundir.STAGES     # every stage, in the order a run takes them
 # How a task's policies are run at control time where it differs from policy_config's eval defaults, for every
 # encoder alike. Place: a mode drawn from the GMM rather than the mixture mean (which averages "close" with "open"
 # and "lift" with "descend" at the grasp), one frame of history (ten let the policy copy its own past motion). The
-# state control's success at place's train level: 1/60 with the defaults, 4/60 sampled, 13/60 sampled with one
-# frame, 0/60 one frame with the mean (results/small/place_state/README.md).
+# state control's success at place's train level: 1/60 with the defaults, 4/60 sampled, 13/60 and 6/60 (two sets
+# of draws) sampled with one frame, 0/60 one frame with the mean; grasped 2, 29, 54, 1 of 60
+# (results/small/place_state/README.md).
 TASK_CONTROL = {"place": dict(action="sample", history=1)}
 
 
