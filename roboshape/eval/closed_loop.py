@@ -284,7 +284,8 @@ def run(config, workdir: str) -> None:
   make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
   for i, train_seed in enumerate(rundir.train_seeds(config)):
     policy = bc.load_policy(workdir, train_seed=train_seed)
-    evaluate(config, workdir, policy, make_pool, SimWorkerError, policy_fingerprint(workdir, train_seed, config.policy.eval.to_dict()),
+    fingerprint = policy_fingerprint(workdir, train_seed, config.policy.eval.to_dict())
+    evaluate(config, workdir, policy, make_pool, SimWorkerError, fingerprint,
              train_seed=train_seed, videos_per_level=config.eval.videos_per_level if i == 0 else 0)
 
 
