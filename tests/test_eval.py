@@ -484,6 +484,15 @@ def test_evaluate_each_training_seed_into_its_own_log_then_one_table(tmp_path):
     assert {r["train_seed"] for r in csv.DictReader(f)} == {"0", "1"}
   assert len(os.listdir(tmp_path / "eval" / "videos")) >= 1
   assert all("s1000_" in name for name in os.listdir(tmp_path / "eval" / "videos"))   # the first policy's only
+  # Rerun otherwise (new fingerprints): the first policy's set-aside log takes the old videos along and records new
+  # ones; the second policy's, which records none, leaves the new videos where they are.
+  videos = sorted(os.listdir(tmp_path / "eval" / "videos"))
+  for i, seed in enumerate((0, 1)):
+    closed_loop.evaluate(config, workdir, FakePolicy(), lambda level: FakePool(), FakeWorkerError,
+                         fingerprint=f"other{seed}", slot_videos=False, train_seed=seed,
+                         videos_per_level=1 if i == 0 else 0)
+  assert sorted(os.listdir(tmp_path / "eval" / "videos")) == videos
+  assert sorted(os.listdir(tmp_path / "eval" / "videos.stale")) == videos
 
 
 def test_grid_sets_training_seeds_per_task_and_publish_by_variant():

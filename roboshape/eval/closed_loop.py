@@ -312,7 +312,8 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
     videos_per_level = config.eval.videos_per_level
   seed_field = {} if train_seed is None else dict(train_seed=int(train_seed))
   video_dir = rundir.videos_dir(workdir)
-  if log.set_aside and os.path.isdir(video_dir):   # the set-aside policy's videos go with its log
+  if log.set_aside and videos_per_level and os.path.isdir(video_dir):
+    # the set-aside policy's videos go with its log (only the policy that records videos has any there)
     shutil.rmtree(video_dir + ".stale", ignore_errors=True)
     os.replace(video_dir, video_dir + ".stale")
   videos.remove_partial(video_dir)       # left by a run killed while writing one
