@@ -32,6 +32,7 @@ CONFIG_FILE = "config.json"
 SKIPPED_FILE = "SKIPPED.json"      # a grid run skipped for bad input: {"reason": the one-line message}
 CHECKPOINTS = "checkpoints"
 RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and the per-level summary
+RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run's): one row per rollout
 SELECTION_FILE = "selected.json"   # <savi_dir>/selected.json: the seed of savi.train.seeds that pretraining selected
 
 

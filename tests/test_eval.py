@@ -12,7 +12,9 @@ from configs import reproduce
 from roboshape import envs
 from roboshape import rundir
 from roboshape import stages
+from roboshape.errors import UserError
 from roboshape.eval import closed_loop
+from roboshape.eval import publish
 from roboshape.eval import report
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
@@ -424,6 +426,39 @@ def test_grid_configs_and_report_with_skipped_baseline(tmp_path, evaluated):
   assert "- skipped: R3M on push: R3M weights not found" in md
   assert "| | R3M | SAVi |" in md and "| none | - |" in md
   assert os.path.getsize(paths["overall.png"]) > 0 and os.path.getsize(paths["table_push.tex"]) > 0
+
+
+def test_report_over_published_runs_reads_back_each_run_and_marks_the_missing_cells(tmp_path, evaluated):
+  config, run_dir, _, _, _ = evaluated
+  root = str(tmp_path / "results")
+  publish.publish(config, run_dir, root)
+  # The published results.csv gives back the run's own summary, crashed rollouts left out as there.
+  keys = ("task", "encoder", "level", "mean", "std", "per_seed", "rollouts", "successes", "crashed")
+  run = report.load_run("push", "savi", run_dir)
+  back = report.load_published(os.path.join(root, "push_savi"))
+  assert [{k: r[k] for k in keys} for r in back["summary"]] == [{k: r[k] for k in keys} for r in run["summary"]]
+  assert (back["num_seeds"], back["rollouts_per_seed"], back["levels"]) == (2, 2, ["L1"])
+  # A second published run, of another task and encoder (an older CSV without train_seed and reached): 1 of 2.
+  os.makedirs(os.path.join(root, "pick_state"))
+  with open(os.path.join(root, "pick_state", rundir.RESULTS_CSV), "w") as f:
+    f.write("task,encoder,level,seed_index,rollout,seed,success,length,ended\n"
+            "pick,state,L1,0,0,7,True,9,success\npick,state,L1,0,1,8,False,40,horizon\n")
+  paths = report.build_published_report(root)
+  assert paths["report.md"] == os.path.join(root, "report", "report.md")
+  md = open(paths["report.md"]).read()
+  assert "| L1 | - | **0.50** ± 0.00 |" in open(paths["table_pick.md"]).read()
+  assert "- skipped: SAVi on pick: not published yet (no pick_savi/results.csv)" in md
+  assert "- skipped: State on push: not published yet (no push_state/results.csv)" in md
+  assert os.path.getsize(paths["overall.png"]) > 0
+
+
+def test_report_over_published_runs_refuses_a_folder_without_any(tmp_path, capsys):
+  os.makedirs(tmp_path / "empty")
+  with pytest.raises(UserError, match="holds no published run"):
+    report.build_published_report(str(tmp_path / "empty"))
+  assert report.main(["report", str(tmp_path / "absent")]) == 2
+  assert "is not a folder" in capsys.readouterr().err
+  assert not os.path.exists(tmp_path / "absent") and os.listdir(tmp_path / "empty") == []
 
 
 def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):

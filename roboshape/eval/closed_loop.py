@@ -217,7 +217,7 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
   records = sorted(records, key=lambda r: (levels.index(r["level"]) if r["level"] in levels else 99,
                                            r["seed_index"], r["rollout"]))
   summary = results_lib.summarize(records)
-  paths = dict(json=os.path.join(out_dir, rundir.RESULTS_FILE), csv=os.path.join(out_dir, "results.csv"),
+  paths = dict(json=os.path.join(out_dir, rundir.RESULTS_FILE), csv=os.path.join(out_dir, rundir.RESULTS_CSV),
                md=os.path.join(out_dir, "table.md"), tex=os.path.join(out_dir, "table.tex"),
                png=os.path.join(out_dir, "success_by_level.png"))
   fileio.atomic_write_json(paths["json"], dict(

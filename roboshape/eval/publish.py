@@ -25,7 +25,7 @@ from roboshape import rundir
 from roboshape.errors import UserError
 
 KEPT = ("README.md",)
-EVAL_FILES = ("results.csv", "table.md", "table.tex", "success_by_level.png", "milestones.md")
+EVAL_FILES = (rundir.RESULTS_CSV, "table.md", "table.tex", "success_by_level.png", "milestones.md")
 
 
 def planned(config, workdir: str) -> List[tuple]:

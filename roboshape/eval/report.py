@@ -9,13 +9,17 @@ Outputs in <workdir>/report/: report.md (everything, with the commands' provenan
 table_<task>.tex per task, overall.png (mean success per encoder and level across tasks, the paper's overall
 figure), summary.json and results.csv (every rollout of every run).
 """
+import csv
 import json
 import os
+import sys
 from typing import Dict, List, Tuple
 
 from roboshape import fileio
 from roboshape import rundir
+from roboshape.envs import TASKS
 from roboshape.envs.palettes import LEVEL_NAMES
+from roboshape.errors import UserError
 from roboshape.eval import plots
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
@@ -45,14 +49,63 @@ def load_run(task: str, encoder: str, run_dir: str) -> Dict:
 
 
 def build_report(config, workdir: str) -> Dict[str, str]:
-  """Writes the report files; returns {name: path}."""
+  """Writes the report files into <workdir>/report/; returns {name: path}."""
   runs = grid_runs(config, workdir)
-  out_dir = rundir.report_dir(workdir)
-  os.makedirs(out_dir, exist_ok=True)
   loaded = {(t, e): load_run(t, e, d) for t, e, d in runs}
+  levels = list(config.eval.levels) if "eval" in config else list(LEVEL_NAMES)
+  return write_report(runs, loaded, levels, rundir.report_dir(workdir))
+
+
+def load_published(folder: str) -> Dict:
+  """{task, encoder, summary, rollouts, levels, num_seeds, rollouts_per_seed} of a published run
+  (roboshape/eval/publish.py): its results.csv, one row per rollout, read back into rollout records."""
+  with open(os.path.join(folder, rundir.RESULTS_CSV), newline="") as f:
+    rows = list(csv.DictReader(f))
+  if not rows:
+    raise UserError(f"{folder}/{rundir.RESULTS_CSV} holds no rollouts: publish the run again once it is evaluated.")
+  rollouts = [dict(r, train_seed=int(r["train_seed"]) if r.get("train_seed") else None,
+                   seed_index=int(r["seed_index"]), rollout=int(r["rollout"]), seed=int(r["seed"]),
+                   success=r["success"] == "True", length=int(r["length"]),
+                   reached=[m for m in (r.get("reached") or "").split("+") if m]) for r in rows]
+  levels = {r["level"] for r in rollouts}
+  per_seed = {}
+  for r in rollouts:
+    per_seed.setdefault((r["train_seed"], r["seed_index"]), set()).add((r["level"], r["seed"]))
+  sizes = {len(v) for v in per_seed.values()}
+  return dict(task=rows[0]["task"], encoder=rows[0]["encoder"], summary=results_lib.summarize(rollouts),
+              rollouts=rollouts, levels=[l for l in LEVEL_NAMES if l in levels],
+              num_seeds=len({r["seed_index"] for r in rollouts}),
+              rollouts_per_seed=max(sizes) // max(len(levels), 1))
+
+
+def build_published_report(root: str) -> Dict[str, str]:
+  """The report over the runs published under `root` (<root>/<task>_<encoder>/results.csv, e.g. results/small),
+  written into <root>/report/; every task x encoder pair without a published run is marked missing."""
+  if not os.path.isdir(root):
+    raise UserError(f"{root} is not a folder: give the folder runs are published to (e.g. results/small).")
+  found = {}
+  for name in sorted(os.listdir(root)):
+    if os.path.isfile(os.path.join(root, name, rundir.RESULTS_CSV)):
+      run = load_published(os.path.join(root, name))
+      found[(run["task"], run["encoder"])] = run
+  if not found:
+    raise UserError(f"{root} holds no published run (<task>_<encoder>/{rundir.RESULTS_CSV}): publish one first "
+                    "(configs/reproduce.py with grid.publish, or roboshape.eval.publish).")
+  tasks = [t for t in TASKS if t in {t for t, _ in found}] + sorted({t for t, _ in found} - set(TASKS))
+  encoders = list(dict.fromkeys(e for _, e in found))
+  runs = [(t, e, os.path.join(root, f"{t}_{e}")) for t in tasks for e in encoders]
+  loaded = {(t, e): found.get((t, e), dict(skipped=f"not published yet (no {t}_{e}/{rundir.RESULTS_CSV})"))
+            for t, e, _ in runs}
+  return write_report(runs, loaded, list(LEVEL_NAMES), os.path.join(root, "report"))
+
+
+def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str], Dict], levels: List[str],
+                 out_dir: str) -> Dict[str, str]:
+  """Writes report.md, the tables, overall.png, summary.json and results.csv of `runs` (task, encoder, folder),
+  `loaded` holding each one's `load_run` result, into out_dir; returns {name: path}."""
+  os.makedirs(out_dir, exist_ok=True)
   tasks = list(dict.fromkeys(t for t, _, _ in runs))
   encoders = tables.sort_encoders(list(dict.fromkeys(e for _, e, _ in runs)))
-  levels = list(config.eval.levels) if "eval" in config else list(LEVEL_NAMES)
   levels = [l for l in LEVEL_NAMES if l in levels]
   summary = [row for r in loaded.values() if "summary" in r for row in r["summary"]]
   rollouts = [row for r in loaded.values() if "rollouts" in r for row in r["rollouts"]]
@@ -111,7 +164,7 @@ def build_report(config, workdir: str) -> Dict[str, str]:
       runs=[dict(task=t, encoder=e, workdir=d, **({"skipped": loaded[(t, e)]["skipped"]}
                                                    if "skipped" in loaded[(t, e)] else {})) for t, e, d in runs],
       summary=summary), indent=1)
-  paths["results.csv"] = os.path.join(out_dir, "results.csv")
+  paths["results.csv"] = os.path.join(out_dir, rundir.RESULTS_CSV)
   results_lib.write_csv(paths["results.csv"], rollouts)
   paths["report.md"] = os.path.join(out_dir, "report.md")
   with open(paths["report.md"], "w") as f:
@@ -125,3 +178,21 @@ def run(config, workdir: str) -> None:
   with open(paths["report.md"]) as f:
     print(f.read(), flush=True)
   print(f"[roboshape] report: {os.path.abspath(paths['report.md'])}", flush=True)
+
+
+def main(argv) -> int:
+  """python -m roboshape.eval.report RESULTS_ROOT: the report over the runs published there."""
+  if len(argv) != 2 or argv[1].startswith("-"):
+    print("usage: python -m roboshape.eval.report RESULTS_ROOT   (e.g. results/small)", file=sys.stderr)
+    return 2
+  try:
+    paths = build_published_report(argv[1])
+  except UserError as e:
+    print(f"roboshape: error: {e}", file=sys.stderr)
+    return 2
+  print(f"[roboshape] report: {os.path.abspath(paths['report.md'])}", flush=True)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv))
