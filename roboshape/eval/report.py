@@ -68,14 +68,10 @@ def load_published(folder: str) -> Dict:
                    success=r["success"] == "True", length=int(r["length"]),
                    reached=[m for m in (r.get("reached") or "").split("+") if m]) for r in rows]
   levels = {r["level"] for r in rollouts}
-  per_seed = {}
-  for r in rollouts:
-    per_seed.setdefault((r["train_seed"], r["seed_index"]), set()).add((r["level"], r["seed"]))
-  sizes = {len(v) for v in per_seed.values()}
   return dict(task=rows[0]["task"], encoder=rows[0]["encoder"], summary=results_lib.summarize(rollouts),
               rollouts=rollouts, levels=[l for l in LEVEL_NAMES if l in levels],
-              num_seeds=len({r["seed_index"] for r in rollouts}),
-              rollouts_per_seed=max(sizes) // max(len(levels), 1))
+              num_seeds=1 + max(r["seed_index"] for r in rollouts),
+              rollouts_per_seed=1 + max(r["rollout"] for r in rollouts))
 
 
 def build_published_report(root: str) -> Dict[str, str]:
