@@ -5,6 +5,9 @@ workdir itself. Each run contributes its <run>/eval/results.json; a run that was
 weights are absent: <run>/SKIPPED.json written by the grid) or that has no results yet appears in the report as a
 "skipped: <reason>" line and as "-" cells, never as a crash.
 
+`python -m roboshape.eval.report RESULTS_ROOT` builds the same report over runs published one by one
+(roboshape/eval/publish.py: <root>/<task>_<encoder>/results.csv, e.g. results/small) into <root>/report/.
+
 Outputs in <workdir>/report/: report.md (everything, with the commands' provenance), table_<task>.md and
 table_<task>.tex per task, overall.png (mean success per encoder and level across tasks, the paper's overall
 figure), summary.json and results.csv (every rollout of every run).
@@ -98,7 +101,7 @@ def build_published_report(root: str) -> Dict[str, str]:
 def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str], Dict], levels: List[str],
                  out_dir: str) -> Dict[str, str]:
   """Writes report.md, the tables, overall.png, summary.json and results.csv of `runs` (task, encoder, folder),
-  `loaded` holding each one's `load_run` result, into out_dir; returns {name: path}."""
+  `loaded` holding each one's `load_run` (or `load_published`) result, into out_dir; returns {name: path}."""
   os.makedirs(out_dir, exist_ok=True)
   tasks = list(dict.fromkeys(t for t, _, _ in runs))
   encoders = tables.sort_encoders(list(dict.fromkeys(e for _, e, _ in runs)))
