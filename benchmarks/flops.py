@@ -13,10 +13,12 @@ def compiled_flops(compiled) -> float:
   return float(cost["flops"])
 
 
-def matmul_flops_per_s(n: int = 2048, reps: int = 10) -> float:
-  """Dense float32 [n, n] x [n, n] FLOP/s on the default device, best of `reps`."""
-  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+def matmul_flops_per_s(n: int = 2048, reps: int = 10, shape=None) -> float:
+  """Dense float32 [n, n] x [n, n] FLOP/s on the default device, best of `reps`; or of [m, k] x [k, n] for
+  shape=(m, k, n)."""
+  m, k, n = shape or (n, n, n)
+  a = jax.random.normal(jax.random.key(0), (m, k), jnp.float32)
+  b = jax.random.normal(jax.random.key(1), (k, n), jnp.float32)
   matmul = jax.jit(jnp.dot)
   matmul(a, b).block_until_ready()
   best = float("inf")
@@ -24,4 +26,4 @@ def matmul_flops_per_s(n: int = 2048, reps: int = 10) -> float:
     start = time.perf_counter()
     matmul(a, b).block_until_ready()
     best = min(best, time.perf_counter() - start)
-  return 2.0 * n ** 3 / best
+  return 2.0 * m * k * n / best

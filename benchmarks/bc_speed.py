@@ -1,0 +1,102 @@
+"""Behaviour-cloning train step at `:small`: steps/s and FLOP/s against a dense matmul, measured side by side.
+
+  JAX_PLATFORMS=cpu .venv/bin/python benchmarks/bc_speed.py [--variant small] [--tokens 9] [--rounds 5]
+  JAX_PLATFORMS=cpu taskset -c 0 .venv/bin/python benchmarks/bc_speed.py    # one core: what one grid lane gets
+
+One run times, alternately (round after round, the median of each kept, to damp a shared machine's noise):
+  roboshape:   `bc.make_train_step` as the train_policy stage runs it (batch, history and trunk from the variant's
+               config; SAVi-like tokens: 9 per frame of width 128 at `:small`);
+  no dropout:  the same step with the policy's dropout at 0 (what the dropout masks cost);
+  matmul:      a dense float32 2048^3 matmul, and dense matmuls of the trunk's own shapes ([B*L, W] x [W, W] and
+               [B*L, W] x [W, 4W], L = H x tokens + H read-out tokens), on the same device.
+Prints each one's time, FLOPs (XLA cost analysis) and FLOP/s, and the step's FLOP/s as a fraction of the 2048^3
+matmul's: the bar is >= 0.6 of it (or >= 2x the steps/s of the step measured when the bar was set: 0.50 s on two
+cores). The trunk-shaped matmuls say what the step's dense layers could reach; the gap between them and the step
+is the rest of the step (attention's small batched products, softmax, masks, layer norms, the optimizer).
+"""
+import argparse
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import jax  # pylint: disable=wrong-import-position
+import numpy as np  # pylint: disable=wrong-import-position
+
+import flops  # pylint: disable=wrong-import-position  (benchmarks/flops.py)
+from configs import common  # pylint: disable=wrong-import-position
+from roboshape.models import policy as policy_lib  # pylint: disable=wrong-import-position
+from roboshape.train import bc  # pylint: disable=wrong-import-position
+
+BASELINE_STEP_S = 0.50   # the :small step on the 2-core CPU when the bar was set (29.2 GFLOP, 58 GFLOP/s)
+
+
+def compiled_step(policy_config, tokens: int, token_dim: int):
+  """(compiled step, its FLOPs, initial state, batch, rng) for the policy the config section describes."""
+  pc = policy_config
+  b, h = pc.train.batch_size, pc.history
+  net, optimizer = policy_lib.net_from_config(pc), bc.make_optimizer(pc.train)
+  state = bc.init_state(net, optimizer, (b, h, tokens, token_dim), 0)
+  rng = np.random.default_rng(0)
+  batch = dict(tokens=rng.normal(size=(b, h, tokens, token_dim)).astype(np.float32),
+               action=rng.uniform(-1, 1, (b, h, pc.chunk, pc.action_dim)).astype(np.float32),
+               mask=np.ones((b, h, pc.chunk), np.float32))
+  key = jax.random.PRNGKey(0)
+  compiled = bc.make_train_step(net, optimizer).lower(state, batch, key).compile()
+  return compiled, flops.compiled_flops(compiled), state, batch, key
+
+
+def time_steps(compiled, state, batch, key, steps: int) -> float:
+  """Seconds per step over `steps` chained steps (each step's state feeds the next)."""
+  start = time.perf_counter()
+  metrics = None
+  for _ in range(steps):
+    state, metrics = compiled(state, batch, key)
+  jax.block_until_ready(metrics)
+  return (time.perf_counter() - start) / steps
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--variant", default="small", choices=common.VARIANTS)
+  parser.add_argument("--tokens", type=int, default=9, help="tokens per frame (SAVi slots at :small)")
+  parser.add_argument("--token_dim", type=int, default=128)
+  parser.add_argument("--rounds", type=int, default=5)
+  parser.add_argument("--steps", type=int, default=4, help="steps timed per round and variant")
+  args = parser.parse_args()
+  pc = common.get_config("push", "savi", args.variant).policy
+  cpus = len(os.sched_getaffinity(0))
+  print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {cpus} of {os.cpu_count()} CPUs; variant "
+        f"{args.variant}: batch {pc.train.batch_size}, H={pc.history}, {args.tokens} tokens x {args.token_dim}, "
+        f"trunk width {pc.width}, {pc.num_layers} layers, {pc.num_heads} heads, dropout {pc.dropout}", flush=True)
+  no_dropout = pc.copy_and_resolve_references()
+  no_dropout.dropout = 0.0
+  steps = {"roboshape": compiled_step(pc, args.tokens, args.token_dim),
+           "no dropout": compiled_step(no_dropout, args.tokens, args.token_dim)}
+  rows = pc.train.batch_size * (pc.history * args.tokens + pc.history)
+  shapes = {"2048^3": (2048, 2048, 2048), f"[{rows}, {pc.width}] x [{pc.width}, {pc.width}]": (rows, pc.width, pc.width),
+            f"[{rows}, {pc.width}] x [{pc.width}, {4 * pc.width}]": (rows, pc.width, 4 * pc.width)}
+  times = {name: [] for name in steps}
+  rates = {name: [] for name in shapes}
+  for _ in range(args.rounds):
+    for name, (compiled, _, *inputs) in steps.items():
+      times[name].append(time_steps(compiled, *inputs, args.steps))
+    for name, shape in shapes.items():
+      rates[name].append(flops.matmul_flops_per_s(reps=5, shape=shape))
+  matmul = float(np.median(rates["2048^3"]))
+  for name, values in rates.items():
+    rate = float(np.median(values))
+    print(f"matmul {name + ':':<28}{rate / 1e9:7.1f} GFLOP/s = {rate / matmul:.2f} of the 2048^3 matmul")
+  for name, (_, step_flops, *_) in steps.items():
+    t = float(np.median(times[name]))
+    print(f"{name + ' step:':<36}{1e3 * t:7.1f} ms ({1 / t:.2f} steps/s), {step_flops / 1e9:.1f} GFLOP -> "
+          f"{step_flops / t / 1e9:.1f} GFLOP/s = {step_flops / t / matmul:.2f} of the 2048^3 matmul")
+  t, step_flops = float(np.median(times["roboshape"])), steps["roboshape"][1]
+  ratio, speedup = step_flops / t / matmul, BASELINE_STEP_S / t
+  print(f"bar (>= 0.6 of the matmul, or >= 2x the steps/s of the {BASELINE_STEP_S:.2f} s step on two cores): "
+        f"{ratio:.2f} of the matmul, {speedup:.2f}x -> {'PASS' if ratio >= 0.6 or speedup >= 2 else 'FAIL'}")
+
+
+if __name__ == "__main__":
+  main()
