@@ -93,9 +93,14 @@ def main():
     print(f"{name + ' step:':<36}{1e3 * t:7.1f} ms ({1 / t:.2f} steps/s), {step_flops / 1e9:.1f} GFLOP -> "
           f"{step_flops / t / 1e9:.1f} GFLOP/s = {step_flops / t / matmul:.2f} of the 2048^3 matmul")
   t, step_flops = float(np.median(times["roboshape"])), steps["roboshape"][1]
-  ratio, speedup = step_flops / t / matmul, BASELINE_STEP_S / t
-  print(f"bar (>= 0.6 of the matmul, or >= 2x the steps/s of the {BASELINE_STEP_S:.2f} s step on two cores): "
-        f"{ratio:.2f} of the matmul, {speedup:.2f}x -> {'PASS' if ratio >= 0.6 or speedup >= 2 else 'FAIL'}")
+  ratio = step_flops / t / matmul
+  if cpus >= 2:
+    speedup = BASELINE_STEP_S / t
+    print(f"bar (>= 0.6 of the matmul, or >= 2x the steps/s of the {BASELINE_STEP_S:.2f} s step on two cores): "
+          f"{ratio:.2f} of the matmul, {speedup:.2f}x -> {'PASS' if ratio >= 0.6 or speedup >= 2 else 'FAIL'}")
+  else:
+    print(f"bar (>= 0.6 of the matmul; the steps/s bar was set on two cores): {ratio:.2f} of the matmul -> "
+          f"{'PASS' if ratio >= 0.6 else 'FAIL'}")
 
 
 if __name__ == "__main__":
