@@ -130,6 +130,21 @@ def test_publish_copies_the_results_under_fixed_names_and_keeps_one_run(tmp_path
     assert json.load(f)["encoder"] == "savi"
 
 
+def test_publish_copies_every_training_seeds_validation_curve(tmp_path):
+  config, workdir = _finished_run(tmp_path, "state")
+  config.policy.train_seeds = (0, 3)
+  for seed in (0, 3):
+    path = os.path.join(rundir.policy_dir(workdir, seed), "val_metrics.json")
+    os.makedirs(os.path.dirname(path))
+    with open(path, "w") as f:
+      f.write(f"[{seed}]")
+  dest = publish.publish(config, workdir, str(tmp_path / "results"))
+  assert not os.path.exists(os.path.join(dest, "policy_val_metrics.json"))   # policy/ is not a trained seed's
+  for seed in (0, 3):
+    with open(os.path.join(dest, f"policy_seed_{seed}_val_metrics.json")) as f:
+      assert f.read() == f"[{seed}]"
+
+
 def test_publish_refuses_a_run_without_evaluation_results_and_writes_nothing(tmp_path):
   config, workdir = _finished_run(tmp_path, "state")
   os.remove(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE))

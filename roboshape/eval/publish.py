@@ -9,7 +9,8 @@ its evaluation is complete. What is copied, under fixed names (files the run doe
   stages.json                      each stage's wall time (roboshape.status reads it)
   results.csv, table.md, table.tex, success_by_level.png, milestones.md   eval/: every rollout, the tables, the
                                                                           plot, how far the rollouts got
-  policy_val_metrics.json/.png     the policy's validation curve
+  policy_val_metrics.json/.png     the policy's validation curve (with policy.train_seeds, one per seed s:
+                                   policy_seed_<s>_val_metrics.json/.png)
   <encoder>_val_metrics.json/.png  the encoder's pretraining curve (savi, ae), and its seed selection files
   videos/*.mp4                     the rollout videos the evaluation recorded (a few per level)
 
@@ -32,8 +33,9 @@ def planned(config, workdir: str) -> List[tuple]:
   """(source path, name in the published folder) of every file `publish` copies from `workdir`."""
   pairs = [(rundir.config_path(workdir), "config.json"), (rundir.stage_log_path(workdir), "stages.json")]
   pairs += [(os.path.join(rundir.eval_dir(workdir), name), name) for name in EVAL_FILES]
-  policy = rundir.policy_dir(workdir)
-  pairs += [(os.path.join(policy, f"val_metrics{ext}"), f"policy_val_metrics{ext}") for ext in (".json", ".png")]
+  for seed in rundir.train_seeds(config):
+    policy, name = rundir.policy_dir(workdir, seed), "policy" if seed is None else f"policy_seed_{seed}"
+    pairs += [(os.path.join(policy, f"val_metrics{ext}"), f"{name}_val_metrics{ext}") for ext in (".json", ".png")]
   encoder_dir = rundir.pretrain_dir(workdir, config.encoder)
   for path in sorted(glob.glob(os.path.join(encoder_dir, "*.json")) + glob.glob(os.path.join(encoder_dir, "*.png"))):
     pairs.append((path, f"{config.encoder}_{os.path.basename(path)}"))
