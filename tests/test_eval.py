@@ -450,6 +450,15 @@ def test_report_over_published_runs_reads_back_each_run_and_marks_the_missing_ce
   assert "- skipped: SAVi on pick: not published yet (no pick_savi/results.csv)" in md
   assert "- skipped: State on push: not published yet (no push_state/results.csv)" in md
   assert os.path.getsize(paths["overall.png"]) > 0
+  # A run with training seeds beside the others; built twice, the report does not read its own pooled results.csv
+  # (report/, where rows with and without a training seed now meet) as one more run.
+  os.makedirs(os.path.join(root, "place_state"))
+  with open(os.path.join(root, "place_state", rundir.RESULTS_CSV), "w") as f:
+    f.write("task,encoder,train_seed,level,seed_index,rollout,seed,success,length,ended,reached\n"
+            "place,state,0,L1,0,0,7,True,9,success,\nplace,state,1,L1,0,0,7,False,40,horizon,\n")
+  md = open(report.build_published_report(root)["report.md"]).read()
+  assert open(report.build_published_report(root)["report.md"]).read() == md
+  assert "| L1 | - | **0.50** ± 0.50 |" in open(os.path.join(root, "report", "table_place.md")).read()
 
 
 def test_report_over_published_runs_refuses_a_folder_without_any(tmp_path, capsys):

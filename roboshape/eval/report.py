@@ -82,8 +82,10 @@ def build_published_report(root: str) -> Dict[str, str]:
   written into <root>/report/; every task x encoder pair without a published run is marked missing."""
   if not os.path.isdir(root):
     raise UserError(f"{root} is not a folder: give the folder runs are published to (e.g. results/small).")
-  found = {}
+  found, out_dir = {}, rundir.report_dir(root)
   for name in sorted(os.listdir(root)):
+    if name == os.path.basename(out_dir):
+      continue                      # this report's own output: its results.csv pools every run's rollouts
     if os.path.isfile(os.path.join(root, name, rundir.RESULTS_CSV)):
       run = load_published(os.path.join(root, name))
       found[(run["task"], run["encoder"])] = run
@@ -95,7 +97,7 @@ def build_published_report(root: str) -> Dict[str, str]:
   runs = [(t, e, os.path.join(root, f"{t}_{e}")) for t in tasks for e in encoders]
   loaded = {(t, e): found.get((t, e), dict(skipped=f"not published yet (no {t}_{e}/{rundir.RESULTS_CSV})"))
             for t, e, _ in runs}
-  return write_report(runs, loaded, list(LEVEL_NAMES), os.path.join(root, "report"))
+  return write_report(runs, loaded, list(LEVEL_NAMES), out_dir)
 
 
 def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str], Dict], levels: List[str],
