@@ -14,6 +14,7 @@ from ml_collections import config_flags
 
 from roboshape import cli
 
+cli.host_device_per_core()   # before jax starts: the train loops split each batch over this process's cores
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Experiment config: configs/<exp>.py[:variant].",
                                           lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Where the run writes everything (default: runs/<config.name>).")

@@ -44,20 +44,24 @@ def main():
   comp = pretrain.compiled(config)
   shape = (args.batch, args.frames, 64, 64, 3)
   state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.replicated)
-  video = jax.device_put(np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8), comp.batch_sharding)
+  rng = np.random.default_rng(0)
+  video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.batch_sharding)
+  depth = None    # the depth target (uint16 mm) of a variant that predicts depth (:small), else none
+  if comp.depth_weight > 0:
+    depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.batch_sharding)
   key = jax.random.key(1)
 
   start = time.perf_counter()
-  compiled = comp.train_step.lower(state, video, None, key).compile()
+  compiled = comp.train_step.lower(state, video, depth, key).compile()
   compile_s = time.perf_counter() - start
   step_flops = flops.compiled_flops(compiled)
 
-  state, metrics = compiled(state, video, None, key)
+  state, metrics = compiled(state, video, depth, key)
   jax.block_until_ready(metrics)
   times = []
   for _ in range(args.steps):
     start = time.perf_counter()
-    state, metrics = compiled(state, video, None, key)
+    state, metrics = compiled(state, video, depth, key)
     jax.block_until_ready(metrics)
     times.append(time.perf_counter() - start)
   step_s = float(np.median(times))

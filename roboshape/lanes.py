@@ -121,4 +121,6 @@ def main(argv) -> int:
 
 
 if __name__ == "__main__":
+  from roboshape import cli  # pylint: disable=ungrouped-imports
+  cli.host_device_per_core(override=True)   # this lane's cores, not the parent's count it inherited
   sys.exit(main(sys.argv))

@@ -96,3 +96,21 @@ def test_override_sets_a_nested_field_from_a_python_literal():
   assert tuple(config.savi.decoder.strides) == (2, 2) and config.savi.train.learning_rate == 1e-3
   with pytest.raises(KeyError):
     common.override(config, "savi.no_such_field.x=1")
+
+
+def test_host_devices_one_per_core_of_the_process(monkeypatch):
+  from roboshape import cli  # pylint: disable=import-outside-toplevel
+  monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3, 5})
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+  assert cli.host_device_per_core() == 3
+  assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_fast_math=false",
+                                             "--xla_force_host_platform_device_count=3"]
+  monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")    # the user's count is kept
+  assert cli.host_device_per_core() == 1
+  assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"
+  # a grid lane replaces the count it inherited with its own cores'
+  monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2 --xla_cpu_enable_fast_math=false")
+  monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {1})
+  assert cli.host_device_per_core(override=True) == 1
+  assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_fast_math=false",
+                                             "--xla_force_host_platform_device_count=1"]

@@ -288,3 +288,55 @@ def test_training_seeds_train_one_policy_each_and_resume_skips(run, monkeypatch,
   out = capsys.readouterr().out
   assert "training seed 3: already trained" in out and "training seed 4: already trained" in out
   assert "train_policy:" not in out
+
+
+_TWO_DEVICES = r'''
+import sys
+import jax, numpy as np
+from configs import common
+from roboshape.models import policy as policy_lib
+from roboshape.train import bc, sharding
+assert jax.local_device_count() == 2, jax.devices()
+pc = common.get_config("push", "savi", "tiny").policy
+net, optimizer = policy_lib.net_from_config(pc), bc.make_optimizer(pc.train)
+b, h, n, d = 4, pc.history, 3, 8
+rng = np.random.default_rng(0)
+batches = [dict(tokens=rng.normal(size=(b, h, n, d)).astype(np.float32),
+                action=rng.uniform(-1, 1, (b, h, pc.chunk, pc.action_dim)).astype(np.float32),
+                mask=np.ones((b, h, pc.chunk), np.float32)) for _ in range(3)]
+step, key, dp = bc.make_train_step(net, optimizer), jax.random.PRNGKey(3), sharding.DataParallel()
+one = bc.init_state(net, optimizer, (b, h, n, d), 0)
+two = jax.device_put(one, dp.replicated)
+for batch in batches:
+  one, m1 = step(one, batch, key)
+  placed = dp.put_batch(batch)
+  assert len(placed["tokens"].addressable_shards) == 2 and placed["tokens"].addressable_shards[0].data.shape[0] == b // 2
+  two, m2 = step(two, placed, key)
+  for k in ("nll", "action_mse", "grad_norm"):
+    np.testing.assert_allclose(float(m1[k]), float(m2[k]), rtol=1e-5)
+# Adam moves a parameter by about the learning rate a step, whatever its gradient's size, so parameters whose
+# gradient is ~0 may differ by float noise times that: compared to a tenth of the learning rate
+lr = pc.train.learning_rate
+for x, y in zip(jax.tree.leaves(one["params"]), jax.tree.leaves(two["params"])):
+  np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=0.1 * lr)
+try:
+  dp.check_batch(3, "policy.train.batch_size")
+except Exception as e:
+  print(type(e).__name__, e)
+print("max param change", max(float(np.abs(np.asarray(x) - np.asarray(y)).max()) for x, y in
+      zip(jax.tree.leaves(one["params"]), jax.tree.leaves(bc.init_state(net, optimizer, (b, h, n, d), 0)["params"]))))
+'''
+
+
+def test_train_step_split_over_two_devices_equals_one_device():
+  """The BC step with its batch split over two (host) devices gives the one-device step's params and loss, with the
+  same dropout masks: data parallelism changes the speed, not the model."""
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
+  out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], cwd=root, env=env, capture_output=True, text=True,
+                       timeout=300, check=False)
+  assert out.returncode == 0, out.stderr[-3000:]
+  assert "UserError policy.train.batch_size=3 does not split over 2 devices; use a multiple of 2." in out.stdout
+  assert float(out.stdout.split("max param change")[1]) > 1e-4    # the steps moved the params: a real comparison

@@ -15,7 +15,9 @@ again on their own, which `load_params` restores without building an optimizer),
 learning rate, gradient norm, validation NLL and action MSE), norm_stats.json (the action normalisation:
 a = scale * a_norm + offset; identity when the demos' actions already lie in [-1, 1]), summary.json (the final
 validation figures), val_metrics.json / .png (every validation result, across resumes, and its curves). The stage
-skips when the last checkpoint is at config's steps.
+skips when the last checkpoint is at config's steps. Every batch is split over the local devices, parameters
+replicated (roboshape/train/sharding.py, as SAVi's pretraining does): one device on a CPU unless XLA_FLAGS says
+otherwise.
 """
 import functools
 import json
@@ -37,6 +39,7 @@ from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.train import cache
 from roboshape.train import history as history_lib
+from roboshape.train import sharding
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -295,9 +298,16 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   net = policy_lib.net_from_config(pc)
   optimizer, schedule = make_optimizer(tc), make_schedule(tc)
   n, d = train_data["features"].shape[1:]
-  state = init_state(net, optimizer, (tc.batch_size, pc.history, n, d), seed)
+  dp = sharding.DataParallel()    # every batch split over the local devices (one on a CPU by default)
+  dp.check_batch(tc.batch_size, "policy.train.batch_size")
+  dp.check_batch(tc.val_batch_size, "policy.train.val_batch_size")
+  state = jax.device_put(init_state(net, optimizer, (tc.batch_size, pc.history, n, d), seed), dp.replicated)
   state, _ = ckpt.resume(state)
-  train_step, eval_step = make_train_step(net, optimizer), make_eval_step(net)
+  state = jax.device_put(state, dp.replicated)
+  train_step, device_eval_step = make_train_step(net, optimizer), make_eval_step(net)
+
+  def eval_step(params, batch):
+    return device_eval_step(params, dp.put_batch(batch))
   start = int(state["step"])
   base_rng = jax.random.PRNGKey(seed)
   from tensorboardX import SummaryWriter  # pylint: disable=import-outside-toplevel
@@ -307,7 +317,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
   try:
     for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
-      batch = train_w.sample(tc.batch_size, seed, step)
+      batch = dp.put_batch(train_w.sample(tc.batch_size, seed, step))
       state, metrics = train_step(state, batch, base_rng)
       done = step + 1
       if done % tc.log_every == 0 or done == tc.steps:
@@ -383,7 +393,8 @@ def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Opt
     if ckpt.latest_step() is None:
       raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
     params = ckpt.restore_params(like, step)
-  return net, params
+  # on one device, as the controller's carry: params saved from a training mesh would otherwise come back on it
+  return net, jax.device_put(params, jax.devices()[0])
 
 
 def load_policy(workdir: str, history: Optional[int] = None, action: Optional[str] = None,

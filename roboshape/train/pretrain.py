@@ -39,7 +39,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from roboshape import fileio
 from roboshape import rundir
@@ -47,17 +46,14 @@ from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
 from roboshape.models import savi
 from roboshape.train import history as history_lib
+from roboshape.train import sharding
 
 
 def validate_config(config) -> None:
   """Raises UserError when the SAVi section cannot work with the env's resolution (savi.check_config, also run by
   roboshape/config_check.py before any stage) or with the machine's devices."""
   savi.check_config(config.savi, int(config.env.resolution))
-  c = config.savi
-  devices = jax.local_device_count()
-  if c.train.batch_size % devices:
-    raise UserError(f"savi.train.batch_size={c.train.batch_size} does not split over {devices} devices; "
-                    f"use a multiple of {devices}.")
+  sharding.DataParallel().check_batch(config.savi.train.batch_size, "savi.train.batch_size")
 
 
 SAVI_CLIP_NORM = 0.05   # SAVi's max_grad_norm (on its loss, summed over a clip's pixel values)
@@ -97,9 +93,8 @@ class Compiled:
     self.model = model
     self.optimizer = make_optimizer(c.train)
     self.schedule = make_schedule(c.train)
-    self.mesh = Mesh(np.array(jax.devices()), ("data",))
-    self.replicated = NamedSharding(self.mesh, PartitionSpec())
-    self.batch_sharding = NamedSharding(self.mesh, PartitionSpec("data"))
+    dp = sharding.DataParallel()
+    self.mesh, self.replicated, self.batch_sharding = dp.mesh, dp.replicated, dp.batch
     self.depth_weight = savi.depth_weight(c)
     self.train_step = jax.jit(self._train_step,
                               in_shardings=(self.replicated, self.batch_sharding, self.batch_sharding,
@@ -300,8 +295,8 @@ def _clip_shape(config):
   return (config.savi.train.batch_size, config.savi.train.clip_length, r, r, 3)
 
 
-def _with_sharding(tree, sharding):
-  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), tree)
+def _with_sharding(tree, target):
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=target), tree)
 
 
 def _abstract_state(comp: Compiled, config):
