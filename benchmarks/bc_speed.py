@@ -86,7 +86,7 @@ def main():
   no_dropout.dropout = 0.0
   steps = {"roboshape": compiled_step(pc, args.tokens, args.token_dim),
            "no dropout": compiled_step(no_dropout, args.tokens, args.token_dim)}
-  dp = sharding.DataParallel()
+  dp = sharding.DataParallel(pc.train.batch_size)
   if dp.num_devices > 1:
     steps[f"{dp.num_devices} devices"] = compiled_step(pc, args.tokens, args.token_dim, dp)
   rows = pc.train.batch_size * (pc.history * args.tokens + pc.history)

@@ -304,7 +304,8 @@ rng = np.random.default_rng(0)
 batches = [dict(tokens=rng.normal(size=(b, h, n, d)).astype(np.float32),
                 action=rng.uniform(-1, 1, (b, h, pc.chunk, pc.action_dim)).astype(np.float32),
                 mask=np.ones((b, h, pc.chunk), np.float32)) for _ in range(3)]
-step, key, dp = bc.make_train_step(net, optimizer), jax.random.PRNGKey(3), sharding.DataParallel()
+step, key, dp = bc.make_train_step(net, optimizer), jax.random.PRNGKey(3), sharding.DataParallel(b, 2 * b)
+assert dp.num_devices == 2 and sharding.DataParallel(3).num_devices == 1 and sharding.DataParallel(6, 3).num_devices == 1
 one = bc.init_state(net, optimizer, (b, h, n, d), 0)
 two = jax.device_put(one, dp.replicated)
 for batch in batches:
@@ -319,10 +320,6 @@ for batch in batches:
 lr = pc.train.learning_rate
 for x, y in zip(jax.tree.leaves(one["params"]), jax.tree.leaves(two["params"])):
   np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=0.1 * lr)
-try:
-  dp.check_batch(3, "policy.train.batch_size")
-except Exception as e:
-  print(type(e).__name__, e)
 print("max param change", max(float(np.abs(np.asarray(x) - np.asarray(y)).max()) for x, y in
       zip(jax.tree.leaves(one["params"]), jax.tree.leaves(bc.init_state(net, optimizer, (b, h, n, d), 0)["params"]))))
 '''
@@ -338,5 +335,4 @@ def test_train_step_split_over_two_devices_equals_one_device():
   out = subprocess.run([sys.executable, "-c", _TWO_DEVICES], cwd=root, env=env, capture_output=True, text=True,
                        timeout=300, check=False)
   assert out.returncode == 0, out.stderr[-3000:]
-  assert "UserError policy.train.batch_size=3 does not split over 2 devices; use a multiple of 2." in out.stdout
   assert float(out.stdout.split("max param change")[1]) > 1e-4    # the steps moved the params: a real comparison

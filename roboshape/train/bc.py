@@ -298,9 +298,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   net = policy_lib.net_from_config(pc)
   optimizer, schedule = make_optimizer(tc), make_schedule(tc)
   n, d = train_data["features"].shape[1:]
-  dp = sharding.DataParallel()    # every batch split over the local devices (one on a CPU by default)
-  dp.check_batch(tc.batch_size, "policy.train.batch_size")
-  dp.check_batch(tc.val_batch_size, "policy.train.val_batch_size")
+  dp = sharding.DataParallel(tc.batch_size, tc.val_batch_size)    # every batch split over the local devices
   state = jax.device_put(init_state(net, optimizer, (tc.batch_size, pc.history, n, d), seed), dp.replicated)
   state, _ = ckpt.resume(state)
   state = jax.device_put(state, dp.replicated)

@@ -51,9 +51,8 @@ from roboshape.train import sharding
 
 def validate_config(config) -> None:
   """Raises UserError when the SAVi section cannot work with the env's resolution (savi.check_config, also run by
-  roboshape/config_check.py before any stage) or with the machine's devices."""
+  roboshape/config_check.py before any stage)."""
   savi.check_config(config.savi, int(config.env.resolution))
-  sharding.DataParallel().check_batch(config.savi.train.batch_size, "savi.train.batch_size")
 
 
 SAVI_CLIP_NORM = 0.05   # SAVi's max_grad_norm (on its loss, summed over a clip's pixel values)
@@ -93,8 +92,8 @@ class Compiled:
     self.model = model
     self.optimizer = make_optimizer(c.train)
     self.schedule = make_schedule(c.train)
-    dp = sharding.DataParallel()
-    self.mesh, self.replicated, self.batch_sharding = dp.mesh, dp.replicated, dp.batch
+    self.dp = sharding.DataParallel(c.train.batch_size)
+    self.replicated, self.batch_sharding = self.dp.replicated, self.dp.batch
     self.depth_weight = savi.depth_weight(c)
     self.train_step = jax.jit(self._train_step,
                               in_shardings=(self.replicated, self.batch_sharding, self.batch_sharding,
@@ -248,10 +247,8 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
         if step == start and comp.depth_weight > 0 and "depth" not in batch:
           raise UserError("savi.train.depth_weight > 0 needs a dataset with depth: collect one with "
                           "--config.env.depth=True (into another --config.data.dir), or set the weight to 0.")
-        video = jax.make_array_from_process_local_data(comp.batch_sharding, np.asarray(batch["video"]))
-        depth = None
-        if comp.depth_weight > 0:
-          depth = jax.make_array_from_process_local_data(comp.batch_sharding, np.asarray(batch["depth"]))
+        video = comp.dp.put_batch(batch["video"])
+        depth = comp.dp.put_batch(batch["depth"]) if comp.depth_weight > 0 else None
         new_state, metrics = comp.train_step(state, video, depth, step_key)
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         if not np.isfinite(metrics["loss"]):
