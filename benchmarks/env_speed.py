@@ -44,7 +44,7 @@ def main():
   parser.add_argument("--resets", type=int, default=10)
   args = parser.parse_args()
   rows = []
-  for mode in ("state", "rgb", "rgb+segmentation", "rgb+depth+segmentation"):
+  for mode in ("state", "rgb", "rgb+segmentation"):
     step_s, reset_s = measure(args.task, mode, args.resolution, args.steps, args.resets)
     rows.append((mode, step_s, reset_s))
   print(f"\n{args.task}, {args.resolution}x{args.resolution}, one env, physx_cpu, random pd_ee_delta_pose actions, "

@@ -1,24 +1,20 @@
-"""Closed-loop evaluation throughput: the SAVi policy vs the oracle expert driving the simulator workers.
+"""Closed-loop evaluation throughput: the SAVi policy vs the oracle expert driving the same simulator workers.
 
   .venv/bin/python benchmarks/eval_speed.py [--task push] [--variant small] [--workers 0] [--episodes 8]
 
-Two pools of workers: one as collection builds them (rgb, segmentation and, at `:small`, depth: what the dataset
-stores), one as the evaluate stage builds them for this policy (`EnvSpec.for_inputs`: rgb alone for SAVi).
-Alternately, round after round:
-  expert: `pool.collect(seeds)` in the collection pool (the oracle expert steps the envs inside the workers);
+In one pool (same workers, same run), alternately:
+  expert: `pool.collect(seeds)` (the oracle expert steps the envs inside the workers), env steps/s;
   policy: `closed_loop.run_rollouts` with a SAVi + transformer policy of the variant's architecture and random
-          weights (speed does not depend on the weights), batched over the pool's envs in this process as the
-          evaluate stage runs it, once in the collection pool (same workers as the expert) and once in the
-          evaluate stage's pool. Env steps/s counts only live env steps.
-The best of each over `--rounds` is kept, to damp the noise of a shared machine (the expert's own rate varies by
-15% between rounds). Prints the rates, the ratios policy/expert (the bar: >= 0.8 for the evaluate stage on a 2-core
-CPU), the policy's own cost per batched step, and what the paper's evaluation grid (3 tasks x 3 encoders x 4
-levels x 300 rollouts) would take at the evaluate stage's rate. Then the simulator alone, the same envs stepped
-with zero actions: rendered as collected, rgb alone, and not rendered (what a `state` policy's unrecorded rollouts
-cost: `pool.reset(seeds, render=False)`).
+          weights (speed does not depend on the weights): the policy runs in this process, batched over the
+          pool's envs, exactly as the evaluate stage runs it. Env steps/s counts only live env steps.
+Each is measured `--rounds` times, alternately (expert, policy, expert, policy, ...), and the best of each kept, to
+damp the noise of a shared machine (the expert's own rate varies by 15% between rounds). Prints both rates, their
+ratio (the bar: >= 0.8 on a 2-core CPU), the policy's own cost per batched step, and what the paper's evaluation
+grid (3 tasks x 3 encoders x 4 levels x 300 rollouts) would take at the measured rate.
+Then the simulator alone, the same envs stepped with the same actions, rendered (what a camera policy's rollouts
+cost) and not rendered (what a `state` policy's unrecorded rollouts cost: `pool.reset(seeds, render=False)`).
 """
 import argparse
-import dataclasses
 import os
 import sys
 import time
@@ -94,7 +90,6 @@ def main():
   parser.add_argument("--rounds", type=int, default=3, help="alternating expert/policy measurements")
   args = parser.parse_args()
   from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
-  from roboshape.sim.spec import obs_mode  # pylint: disable=import-outside-toplevel
 
   config = common.get_config(args.task, "savi", args.variant)
   config.env.max_episode_steps = args.max_steps
@@ -102,53 +97,45 @@ def main():
   spec = EnvSpec.from_config(config, level="train")
   print(f"task {args.task}, SAVi+policy of variant {args.variant!r} (random weights), jax on "
         f"{jax.devices()[0].platform}, {os.cpu_count()} CPUs", flush=True)
-  eval_spec = spec.for_inputs(policy.inputs)   # what the evaluate stage's workers render for this policy
-  with SimPool(spec, num_workers=args.workers) as pool, SimPool(eval_spec, num_workers=args.workers) as eval_pool:
+  with SimPool(spec, num_workers=args.workers) as pool:
     n = pool.num_envs
     episodes = args.episodes or 2 * n
     # Warm-up: worker start, shaders, the policy's compilation for this batch size.
     policy.reset(batch_size=n)
-    for p in (pool, eval_pool):
-      frames = p.reset([10**9 + 900_000 + i for i in range(n)])["image"]
-      for _ in range(3):
-        p.step(np.clip(policy.act_batch(frames), -1, 1))
+    frames = pool.reset([10**9 + 900_000 + i for i in range(n)])["image"]
+    for _ in range(3):
+      pool.step(np.clip(policy.act_batch(frames), -1, 1))
     list(pool.collect([2 * 10**9 + i for i in range(n)]))
     t0 = time.perf_counter()
     for _ in range(20):
       jax.block_until_ready(policy.act_batch(frames))
     act_ms = (time.perf_counter() - t0) / 20 * 1e3
 
-    expert, same, evaluate, expert_len, policy_len = [], [], [], 0.0, 0.0
+    expert, policy_rates, expert_len, policy_len = [], [], 0.0, 0.0
     for rep in range(args.rounds):
       base = 10**9 + 800_000 + rep * 10_000
       rate, expert_len = time_expert(pool, [base + i for i in range(episodes)])
       expert.append(rate)
       rate, policy_len = time_policy(pool, policy, [base + 5_000 + i for i in range(episodes)])
-      same.append(rate)
-      evaluate.append(time_policy(eval_pool, policy, [base + 5_000 + i for i in range(episodes)])[0])
-      print(f"  round {rep + 1}: expert {expert[-1]:.1f} env steps/s, SAVi policy {same[-1]:.1f} (same workers), "
-            f"{evaluate[-1]:.1f} (the evaluate stage's workers)", flush=True)
+      policy_rates.append(rate)
+      print(f"  round {rep + 1}: expert {expert[-1]:.1f} env steps/s, SAVi policy {policy_rates[-1]:.1f} env "
+            f"steps/s", flush=True)
     seeds = [10**9 + 700_000 + i for i in range(n)]
     camera = max(time_env(pool, seeds, True, 60) for _ in range(2))
-    rgb = max(time_env(eval_pool, seeds, True, 60) for _ in range(2))
     blind = max(time_env(pool, seeds, False, 60) for _ in range(2))
-  e, p, q = max(expert), max(same), max(evaluate)
-  print(f"envs in the pool: {n}; episodes per measurement: {episodes}; collection renders "
-        f"{obs_mode(dataclasses.asdict(spec))}, the evaluate stage {obs_mode(dataclasses.asdict(eval_spec))}")
+  e, p = max(expert), max(policy_rates)
+  print(f"envs in the pool: {n}; episodes per measurement: {episodes}")
   print(f"policy act_batch alone (B={n}, no simulator): {act_ms:.1f} ms per batched step")
   print(f"expert: {e:.1f} env steps/s (mean episode {expert_len:.0f} steps)")
-  print(f"SAVi policy, same workers: {p:.1f} env steps/s (mean episode {policy_len:.0f} steps, random weights: "
-        "mostly horizon)")
-  print(f"SAVi policy, the evaluate stage's workers: {q:.1f} env steps/s")
-  print(f"ratio policy/expert: same workers {p / e:.2f}, evaluate stage {q / e:.2f} (bar >= 0.8: "
-        f"{'PASS' if q / e >= 0.8 else 'FAIL'})")
-  print(f"simulator alone: rendered as collected {camera:.1f} env steps/s, rgb alone {rgb:.1f}, not rendered "
-        f"{blind:.1f} ({blind / camera:.1f}x: a `state` policy's unrecorded rollouts)")
+  print(f"SAVi policy: {p:.1f} env steps/s (mean episode {policy_len:.0f} steps, random weights: mostly horizon)")
+  print(f"ratio policy/expert: {p / e:.2f} (bar >= 0.8: {'PASS' if p / e >= 0.8 else 'FAIL'})")
+  print(f"simulator alone: rendered {camera:.1f} env steps/s, not rendered {blind:.1f} env steps/s "
+        f"({blind / camera:.1f}x: a `state` policy's unrecorded rollouts)")
   rollouts = 3 * 3 * 4 * 300
   for label, length in (("every rollout runs to the horizon", policy_len), ("rollouts as long as the expert's",
                                                                              expert_len)):
-    hours = rollouts * length / q / 3600
-    print(f"paper grid ({rollouts} rollouts), {label} ({length:.0f} steps): {hours:.1f} h at {q:.1f} env steps/s")
+    hours = rollouts * length / p / 3600
+    print(f"paper grid ({rollouts} rollouts), {label} ({length:.0f} steps): {hours:.1f} h at {p:.1f} env steps/s")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,5 @@
 """The numpy bridge to the simulator (the dicts of roboshape/sim/__init__.py): input checks, collection, closed
 loop, worker failures."""
-import dataclasses
 import os
 import subprocess
 import sys
@@ -12,7 +11,6 @@ from configs import common
 from roboshape.errors import UserError
 from roboshape.envs import ids
 from roboshape.sim import EnvSpec, SimPool, SimWorkerError, check_seeds
-from roboshape.sim.spec import obs_mode
 
 RESOLUTION = 32
 EPISODE_KEYS = {"task", "level", "seed", "success", "env_version", "terminated", "image", "segmentation", "state",
@@ -118,32 +116,6 @@ def test_an_env_reset_without_render_has_the_same_state_and_no_frames(pool, epis
   np.testing.assert_array_equal(out["state"], e["state"][[3, 3]])   # the physics does not depend on the camera
   rendered = pool.reset([e["seed"]])                                  # the next reset renders again
   np.testing.assert_array_equal(rendered["image"][0], e["image"][0])
-
-
-def test_a_worker_rendering_rgb_alone_shows_the_same_frames(episodes):
-  """What the evaluate stage gives a SAVi policy (`EnvSpec.for_inputs`): rgb without segmentation or depth, each
-  frame identical to the one the dataset stores, the segmentation zeros."""
-  e = episodes[0]
-  spec = EnvSpec("place", resolution=RESOLUTION, depth=True).for_inputs(("image",))
-  assert (spec.depth, spec.segmentation) == (False, False)
-  with SimPool(spec, num_workers=1) as rgb_only:
-    obs = rgb_only.reset([e["seed"]])
-    np.testing.assert_array_equal(obs["image"][0], e["image"][0])
-    for t in range(3):
-      obs = rgb_only.step(e["action"][t][None])
-    np.testing.assert_array_equal(obs["image"][0], e["image"][3])
-    np.testing.assert_array_equal(obs["state"][0], e["state"][3])
-    assert not obs["segmentation"].any() and "depth" not in obs
-
-
-def test_a_spec_renders_what_a_policy_reads():
-  base = EnvSpec("push", depth=True)
-  assert obs_mode(dataclasses.asdict(base)) == "rgb+depth+segmentation"
-  assert obs_mode(dataclasses.asdict(EnvSpec("push"))) == "rgb+segmentation"          # what collection renders
-  assert obs_mode(dataclasses.asdict(base.for_inputs(("image",)))) == "rgb"             # SAVi, AE, R3M, DINO
-  assert obs_mode(dataclasses.asdict(base.for_inputs(("state",)))) == "rgb"             # recorded videos only
-  assert base.for_inputs(("image", "segmentation", "depth")) == base                   # objects with depth
-  assert EnvSpec("push").for_inputs(("image", "segmentation", "depth")).depth is False  # no depth to give
 
 
 def test_closed_loop_input_checks(pool):

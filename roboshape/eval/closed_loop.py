@@ -281,11 +281,9 @@ def run(config, workdir: str) -> None:
   from roboshape.train import bc
   rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                config.eval.seed_offset)     # bad settings fail before the policy loads
+  make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
   for i, train_seed in enumerate(rundir.train_seeds(config)):
     policy = bc.load_policy(workdir, train_seed=train_seed)
-    # the workers render only the camera channels the policy reads (a SAVi policy: rgb, no segmentation or depth)
-    make_pool = lambda level, inputs=policy.inputs: SimPool(EnvSpec.from_config(config, level=level).for_inputs(
-        inputs), num_workers=config.sim.num_workers)
     fingerprint = policy_fingerprint(workdir, train_seed, config.policy.eval.to_dict())
     evaluate(config, workdir, policy, make_pool, SimWorkerError, fingerprint,
              train_seed=train_seed, videos_per_level=config.eval.videos_per_level if i == 0 else 0)

@@ -18,8 +18,6 @@ class EnvSpec:
   max_episode_steps: 0 uses the task's own horizon (>= 1.5x the expert's 95th-percentile episode length).
   sim_backend: "physx_cpu" or "physx_cuda" (the physics on a GPU); either way a worker owns one env.
   depth: also render the camera's depth (uint16 millimetres), stored with collected episodes.
-  segmentation: also render the segmentation (RoboShape object ids), stored with collected episodes. The evaluate
-    stage renders only what its policy reads (`for_inputs`): a SAVi policy's workers render rgb alone.
   """
   task: str
   level: str = "train"
@@ -29,7 +27,6 @@ class EnvSpec:
   max_episode_steps: int = 0
   sim_backend: str = "physx_cpu"
   depth: bool = False
-  segmentation: bool = True
 
   def __post_init__(self):
     try:
@@ -56,18 +53,6 @@ class EnvSpec:
                min_distractors=int(env.min_distractors), max_distractors=int(env.max_distractors),
                max_episode_steps=int(env.max_episode_steps), sim_backend=str(env.sim_backend),
                depth=bool(env.get("depth", False)))
-
-  def for_inputs(self, inputs: Iterable[str]) -> "EnvSpec":
-    """This spec rendering only the camera channels among `inputs` (observation keys, e.g. a policy's `inputs`):
-    depth and segmentation only when read (and depth only where this spec has it). The rgb image is always
-    rendered: recorded rollouts' videos show it."""
-    keys = set(inputs)
-    return dataclasses.replace(self, depth=self.depth and "depth" in keys, segmentation="segmentation" in keys)
-
-
-def obs_mode(spec: dict) -> str:
-  """The ManiSkill obs mode a worker builds its env with, from the spec's fields (EnvSpec as a dict)."""
-  return "+".join(["rgb"] + ["depth"] * bool(spec.get("depth")) + ["segmentation"] * bool(spec.get("segmentation", True)))
 
 
 def check_seeds(seeds: Iterable) -> List[int]:

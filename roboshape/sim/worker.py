@@ -36,13 +36,12 @@ class Worker:
     import mani_skill  # pylint: disable=import-outside-toplevel
     from roboshape import envs  # pylint: disable=import-outside-toplevel
     from roboshape.envs import experts  # pylint: disable=import-outside-toplevel
-    from roboshape.sim import spec as spec_lib  # pylint: disable=import-outside-toplevel
     self.np, self.torch = np, torch
     backend = {"cpu": "physx_cpu", "gpu": "physx_cuda"}.get(spec["sim_backend"], spec["sim_backend"])
     self.env = envs.make_env(spec["task"], spec["level"], resolution=spec["resolution"],
                              min_distractors=spec["min_distractors"], max_distractors=spec["max_distractors"],
                              sim_backend=backend,
-                             obs_mode=spec_lib.obs_mode(spec))
+                             obs_mode="rgb+depth+segmentation" if spec.get("depth") else "rgb+segmentation")
     self.task = self.env.unwrapped
     self.obs_mode = self.task.obs_mode
     self.spec = spec
