@@ -2,8 +2,8 @@
 
   .venv/bin/python benchmarks/env_speed.py [--task pick] [--resolution 64] [--steps 200]
 
-Modes, measured one after the other in the same run: state (no camera), rgb (64x64 front camera) and
-rgb+segmentation (what SimPool workers use). Also prints the cost of a reset (each reset rebuilds the scene).
+Modes, measured one after the other in the same run: state (no camera), rgb (64x64 front camera),
+rgb+segmentation (what SimPool workers use) and rgb+depth+segmentation (what they use with env.depth, at `:small`). Also prints the cost of a reset (each reset rebuilds the scene).
 """
 import argparse
 import os
@@ -44,7 +44,7 @@ def main():
   parser.add_argument("--resets", type=int, default=10)
   args = parser.parse_args()
   rows = []
-  for mode in ("state", "rgb", "rgb+segmentation"):
+  for mode in ("state", "rgb", "rgb+segmentation", "rgb+depth+segmentation"):
     step_s, reset_s = measure(args.task, mode, args.resolution, args.steps, args.resets)
     rows.append((mode, step_s, reset_s))
   print(f"\n{args.task}, {args.resolution}x{args.resolution}, one env, physx_cpu, random pd_ee_delta_pose actions, "

@@ -49,8 +49,8 @@ def get_config(variant: str = "paper"):
   config.grid = ml_collections.ConfigDict(dict(
       tasks=tasks, encoders=encoders,
       publish="results/small" if variant == "small" else "",   # where each evaluated run's results are copied
-      # runs at once, each a child process pinned to its share of the cores (roboshape/lanes.py): two on the 2-core
-      # CPU machine, where a :small BC step takes 0.70 s on one core and 0.50 s on two (2.9 vs 2.0 steps/s)
+      # runs at once, each a child process pinned to its share of the cores: two on the 2-core CPU machine (why, with
+      # the measured steps/s: roboshape/lanes.py)
       lanes=2 if variant == "small" else 1,
       # {task: policy.train_seeds} for the runs of that task: three training seeds per run, as the paper repeats
       # each experiment 3 times; at :small only push (training seeds triple the behaviour cloning's time)
