@@ -15,7 +15,7 @@ One run times, alternately (round after round, the median of each kept, to damp 
 Prints each one's time, FLOPs (XLA cost analysis of the one-device step) and FLOP/s, and the FLOP/s as a fraction
 of the 2048^3 matmul's. The bar, for the fastest step train_policy runs here (split over the cores): >= 0.6 of the
 matmul, or >= 2x the one-device step's steps/s, both measured in this run (the 0.50 s step the bar was set
-against came from another 2-core machine, with a matmul 2-2.5x slower than this one's; printed for reference).
+against came from the first 2-core machine, whose 2048^3 matmul ran at 181-209 GFLOP/s; printed for reference).
 The trunk-shaped matmuls say what the step's dense layers could reach; the gap between them and the step
 is the rest of the step (attention's small batched products, softmax, masks, layer norms, the optimizer).
 """
