@@ -7,8 +7,8 @@ One run times, alternately (round after round, the median of each kept, to damp 
   roboshape:   `bc.make_train_step` as the train_policy stage runs it on one device, the default on a CPU (batch,
                history and trunk from the variant's config; SAVi-like tokens: 9 per frame of width 128 at `:small`);
   N devices:   the same step with its batch split over N host devices, one per core of this process
-               (roboshape/train/sharding.py; the script sets XLA_FLAGS=--xla_force_host_platform_device_count=N
-               itself, as a run would need to);
+               (roboshape/train/sharding.py; the script makes each core a device as launch.py does:
+               roboshape/cli.py);
   no dropout:  the one-device step with the policy's dropout at 0 (what the dropout masks cost);
   matmul:      a dense float32 2048^3 matmul, and dense matmuls of the trunk's own shapes ([B*L, W] x [W, W] and
                [B*L, W] x [W, 4W], L = H x tokens + H read-out tokens), on the same device.
@@ -25,9 +25,10 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from roboshape import cli  # pylint: disable=wrong-import-position
+
 CPUS = len(os.sched_getaffinity(0))
-if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):   # before jax starts
-  os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={CPUS}"
+cli.host_device_per_core()   # before jax starts, as launch.py does
 
 import jax  # pylint: disable=wrong-import-position
 import numpy as np  # pylint: disable=wrong-import-position

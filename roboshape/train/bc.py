@@ -16,8 +16,7 @@ learning rate, gradient norm, validation NLL and action MSE), norm_stats.json (t
 a = scale * a_norm + offset; identity when the demos' actions already lie in [-1, 1]), summary.json (the final
 validation figures), val_metrics.json / .png (every validation result, across resumes, and its curves). The stage
 skips when the last checkpoint is at config's steps. Every batch is split over the local devices, parameters
-replicated (roboshape/train/sharding.py, as SAVi's pretraining does): one device on a CPU unless XLA_FLAGS says
-otherwise.
+replicated (roboshape/train/sharding.py, as SAVi's pretraining does; launch.py makes each CPU core a device).
 """
 import functools
 import json
@@ -299,8 +298,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   optimizer, schedule = make_optimizer(tc), make_schedule(tc)
   n, d = train_data["features"].shape[1:]
   dp = sharding.DataParallel(tc.batch_size, tc.val_batch_size)    # every batch split over the local devices
-  state = jax.device_put(init_state(net, optimizer, (tc.batch_size, pc.history, n, d), seed), dp.replicated)
-  state, _ = ckpt.resume(state)
+  state, _ = ckpt.resume(init_state(net, optimizer, (tc.batch_size, pc.history, n, d), seed))
   state = jax.device_put(state, dp.replicated)
   train_step, device_eval_step = make_train_step(net, optimizer), make_eval_step(net)
 
