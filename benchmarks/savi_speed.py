@@ -43,12 +43,12 @@ def main():
   pretrain.validate_config(config)
   comp = pretrain.compiled(config)
   shape = (args.batch, args.frames, 64, 64, 3)
-  state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.replicated)
+  state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
   rng = np.random.default_rng(0)
-  video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.batch_sharding)
+  video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
   depth = None    # the depth target (uint16 mm) of a variant that predicts depth (:small), else none
   if comp.depth_weight > 0:
-    depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.batch_sharding)
+    depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.dp.batch)
   key = jax.random.key(1)
 
   start = time.perf_counter()

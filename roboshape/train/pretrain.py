@@ -93,12 +93,11 @@ class Compiled:
     self.optimizer = make_optimizer(c.train)
     self.schedule = make_schedule(c.train)
     self.dp = sharding.DataParallel(c.train.batch_size)
-    self.replicated, self.batch_sharding = self.dp.replicated, self.dp.batch
     self.depth_weight = savi.depth_weight(c)
     self.train_step = jax.jit(self._train_step,
-                              in_shardings=(self.replicated, self.batch_sharding, self.batch_sharding,
-                                            self.replicated),
-                              out_shardings=(self.replicated, self.replicated))
+                              in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch,
+                                            self.dp.replicated),
+                              out_shardings=(self.dp.replicated, self.dp.replicated))
 
   def init_state(self, key: jax.Array, video_shape: Sequence[int]) -> Dict[str, Any]:
     """The step-0 train state {step, params, opt_state} for clips of shape [B, L, H, W, 3]."""
@@ -228,7 +227,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
                                          history_lib.seconds_at(root, "val_metrics", start))))
         return {"step": start, "params": restored["params"], "history": history, "eval": evals}
     key = jax.random.key(config.seed)
-    state = jax.device_put(comp.init_state(jax.random.fold_in(key, 1), _clip_shape(config)), comp.replicated)
+    state = jax.device_put(comp.init_state(jax.random.fold_in(key, 1), _clip_shape(config)), comp.dp.replicated)
     if start:
       state, start = ckpt.resume(state)     # the newest step that restores; damaged newer ones are set aside
       print(f"[pretrain] resuming from step {start}", flush=True)
@@ -299,7 +298,7 @@ def _with_sharding(tree, target):
 def _abstract_state(comp: Compiled, config):
   """The shapes, dtypes and (replicated) shardings of the train state {step, params, opt_state}."""
   like = jax.eval_shape(lambda: comp.init_state(jax.random.key(0), _clip_shape(config)))
-  return _with_sharding(like, comp.replicated)
+  return _with_sharding(like, comp.dp.replicated)
 
 
 def data_source(config, workdir: str):
