@@ -14,8 +14,10 @@ Variants:
          machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending and how long
          each stage took. Two runs at once (grid.lanes=2), each pinned to one core, each logging to
          <run>/log.txt. Baselines whose weights are absent (config.baselines.*.path) are skipped, said in the
-         report. Measured per run (one training seed, 2-core CPU): collect 110.6 s push / 232.6 s pick; state
-         train_policy ~950 s and evaluate ~425 s; the other runs are not yet measured end to end.
+         report. Measured: the push row (4 encoders, one training seed, one SAVi seed:
+         --config.grid.tasks="('push',)" --config.grid.train_seeds.push="()" --config.savi.train.seeds="(0,)")
+         in 1 h 30 min end to end on a 2-core CPU; the grid as configured about 9 h (stage times per run and the
+         estimate: results/small/README.md).
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 
 Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<encoder>/ (one run:
