@@ -58,5 +58,8 @@ def get_config(variant: str = "paper"):
       # each experiment 3 times; at :small only push (training seeds triple the behaviour cloning's time)
       train_seeds=ml_collections.ConfigDict(
           {"push": (0, 1, 2)} if variant == "small" else {t: (0, 1, 2) for t in tasks} if variant == "paper" else {}),
+      # {task: policy.eval settings} for the runs of that task: how its policies are run at control time where it
+      # differs from the defaults (common.TASK_CONTROL; the config above was built for the first task only)
+      task_control=ml_collections.ConfigDict({t: common.TASK_CONTROL[t] for t in tasks if t in common.TASK_CONTROL}),
   ))
   return config

@@ -15,7 +15,8 @@ def grid_configs(config, workdir: str):
   Each run is the grid's config with its task and encoder set, in rundir.grid_run_dir (<workdir>/<task>_<encoder>/),
   reading the task's dataset from rundir.grid_data_dir (<data_root>/<task>, shared by the task's runs; collected
   once). Runs of encoders with a pretraining stage (SAVi) come first within a task. `grid.train_seeds`, a
-  {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names.
+  {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names; `grid.task_control`, a
+  {task: {field: value}} mapping, updates policy.eval for them (how that task's policies are run at control time).
   """
   import ml_collections  # pylint: disable=import-outside-toplevel
   base = config.to_dict()
@@ -31,4 +32,7 @@ def grid_configs(config, workdir: str):
       seeds = config.grid.get("train_seeds", {}).get(task)
       if seeds:
         sub.policy.train_seeds = tuple(seeds)
+      control = config.grid.get("task_control", {}).get(task)
+      if control:
+        sub.policy.eval.update(control.to_dict())
       yield task, encoder, sub, rundir.grid_run_dir(workdir, task, encoder)

@@ -546,3 +546,8 @@ def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
   seeds = {(task, enc): tuple(sub.policy.train_seeds) for task, enc, sub, _ in stages.grid_configs(small, "/w")}
   assert seeds[("push", "state")] == (0, 1, 2) and seeds[("pick", "savi")] == ()
   assert tuple(small.savi.train.seeds) == (0, 1, 2) and tuple(reproduce.get_config("tiny").savi.train.seeds) == ()
+  # each task's runs are controlled as that task's own config runs them (place: a sampled mode, one frame)
+  for task, enc, sub, _ in stages.grid_configs(small, "/w"):
+    assert sub.policy.eval.to_dict() == common.get_config(task, enc, "small").policy.eval.to_dict(), (task, enc)
+  evals = {task: (sub.policy.eval.action, sub.policy.eval.history) for task, _, sub, _ in stages.grid_configs(small, "/w")}
+  assert evals == {"push": ("mean", 0), "pick": ("mean", 0), "place": ("sample", 1)}
