@@ -221,6 +221,9 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       num_modes=5,              # GMM modes
       min_scale=1e-4,           # floor on the GMM's softplus scales
       chunk=1,                  # C: future actions predicted per step (1: no chunking)
+      # one more token per frame with the robot's own pose (tool centre point, finger opening) from
+      # observation/state (roboshape/encoders/proprio.py); off in the paper, which uses no proprioception
+      proprio=False,
       cache_dtype="float32",    # dtype of the cached encoder features ("float16" halves the cache)
       # () one policy trained with config.seed, in <workdir>/policy/; (s1, s2, ...) one policy per training seed, in
       # policy/seed_<s>/, each evaluated on the same evaluation seeds; tables then give mean ± std over them

@@ -251,7 +251,8 @@ def _check_env(config) -> None:
 
 
 def _check_policy(config) -> None:
-  """The policy's ranges, heads dividing the width, the control-time history and action, the cache dtype."""
+  """The policy's ranges, heads dividing the width, the control-time history and action, proprio a bool, the cache
+  dtype."""
   import numpy as np  # pylint: disable=import-outside-toplevel
   _check_tables(config, "policy")
   policy = config.policy
@@ -262,6 +263,8 @@ def _check_policy(config) -> None:
     raise UserError(f"policy.eval.history={policy.eval.history} exceeds policy.history={policy.history}: use at "
                     "most the training history (0: the training history).")
   check_choice(config, "policy.eval.action", _POLICY_ACTIONS, "the mixture mean, or a sampled mode")
+  if not isinstance(_value(config, "policy.proprio"), bool):
+    raise UserError(f"policy.proprio={policy.proprio!r}: use True or False (a proprioception token per frame).")
   seeds = _value(config, "policy.train_seeds")
   if (isinstance(seeds, str) or not isinstance(seeds, (tuple, list)) or len(set(seeds)) != len(seeds)
       or not all(_is_int(s) and s >= 0 for s in seeds)):

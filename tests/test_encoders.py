@@ -80,3 +80,50 @@ def test_a_dataset_without_state_is_a_one_line_error_for_the_state_encoder(tmp_p
                      ) as e:
     cache.encode_split(enc, iter([old]), str(tmp_path / "features"))
   assert "\n" not in str(e.value)
+
+
+def test_the_proprio_option_appends_the_hand_pose_token_and_changes_nothing_else():
+  from roboshape.encoders import objects as objects_encoder  # pylint: disable=import-outside-toplevel
+  from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
+  config = common.get_config("push", "objects", "tiny")
+  assert config.policy.proprio is False
+  plain = encoders.build_encoder(config, "")
+  config.policy.proprio = True
+  enc = encoders.build_encoder(config, "")
+  assert enc.inputs == plain.inputs + ("state",)
+  assert (enc.num_tokens, enc.token_dim) == (plain.num_tokens + 1, objects_encoder.DIM + 1)
+  assert enc.identity.startswith(plain.identity + "+proprio:") and enc.identity != plain.identity
+  rng = np.random.default_rng(2)
+  b, t, h = 2, 3, 8
+  obs = {"image": rng.integers(0, 255, (b, t, h, h, 3), dtype=np.uint8),
+         "segmentation": rng.integers(0, 5, (b, t, h, h), dtype=np.uint8),
+         "state": rng.normal(size=(b, t, state_lib.DIM)).astype(np.float32)}
+  base = np.asarray(plain.encode_batch(obs))
+  tokens = np.asarray(enc.encode_batch(obs))
+  assert tokens.shape == (b, t, plain.num_tokens + 1, objects_encoder.DIM + 1)
+  # The encoder's own tokens are unchanged, flag 0; an absent object's token stays all zero (the trunk masks it).
+  np.testing.assert_array_equal(tokens[:, :, :-1, :-1], base)
+  assert not tokens[:, :, :-1, -1].any()
+  assert ((tokens[:, :, :-1] == 0).all(-1) == (base == 0).all(-1)).all()
+  # The last token: the state's tcp position (dm), tcp orientation and finger opening (dm) at the same step, flag 1.
+  cuts = state_lib.slices()
+  s = obs["state"]
+  expected = np.concatenate([10 * s[..., cuts["tcp_pos"]], s[..., cuts["tcp_quat"]], 10 * s[..., cuts["gripper"]]],
+                            -1)
+  own = tokens[:, :, -1]
+  np.testing.assert_allclose(own[..., :proprio.SIZE], expected, rtol=1e-6)
+  np.testing.assert_allclose(proprio.token(s), expected, rtol=1e-6)
+  assert not own[..., proprio.SIZE:-1].any() and (own[..., -1] == 1).all()
+
+
+def test_the_proprio_token_pads_to_a_wider_encoders_width():
+  from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
+  config = common.get_config("push", "state", "tiny")
+  config.policy.proprio = True
+  enc = encoders.build_encoder(config, "")
+  # The state token (74 wide) is wider than the 8 proprioception entries: they are padded to its width.
+  assert (enc.num_tokens, enc.token_dim, enc.inputs) == (2, state_lib.DIM + 9 + 1, ("state",))
+  states = np.random.default_rng(3).normal(size=(1, 2, state_lib.DIM)).astype(np.float32)
+  tokens = np.asarray(enc.encode_batch({"state": states}))
+  np.testing.assert_allclose(tokens[0, :, 1, :proprio.SIZE], proprio.token(states[0]), rtol=1e-6)
+  assert not tokens[0, :, 1, proprio.SIZE:-1].any() and tokens[0, :, 0, -1].tolist() == [0, 0]

@@ -84,5 +84,10 @@ def get(name: str) -> Kind:
 
 
 def build_encoder(config, workdir: str):
-  """The `FrozenEncoder` of `config.encoder`, built by its registered `build`."""
-  return get(config.encoder).build(config, workdir)
+  """The `FrozenEncoder` of `config.encoder`, built by its registered `build`; with `config.policy.proprio`, its
+  tokens followed by a proprioception token per frame (roboshape/encoders/proprio.py)."""
+  encoder = get(config.encoder).build(config, workdir)
+  if config.get("policy", {}).get("proprio", False):
+    from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
+    encoder = proprio.with_proprio(encoder)
+  return encoder
