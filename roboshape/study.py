@@ -1,0 +1,217 @@
+"""A study of probes: one row per run, read from the run's own files, in a CSV and a README table built from it.
+
+A probe is an ordinary run (launch.py) that differs from its experiment config in a few fields. `add` reads its
+workdir and writes one row to <study>/probes.csv (replacing a row of the same name):
+
+  probe, task, encoder, variant   the run's identity
+  changed                         every config field that differs from `configs/common.get_config(task, encoder,
+                                  variant)`, except the bookkeeping ones (IGNORED: the dataset path, worker count,
+                                  the evaluated levels, stages, seeds of the run itself)
+  rollouts, successes, success    the evaluation's rollouts at the train level (every training seed pooled)
+  reached                         per milestone of the task, how many of those rollouts reached it
+  val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
+  fg_ari                          the selected SAVi's final validation FG-ARI, where the run pretrained one
+  <stage>_s, core_hours           each stage's wall seconds (stages.json; collect excluded: the dataset is shared
+                                  by a task's probes) and their sum x the cores the run was pinned to, in hours
+
+`add` also copies those files (KEPT) to <study>/<probe>/, so the row can be read again from the repository.
+`render` writes the table between the README's markers (BEGIN, END) from the CSV alone, so the README cannot
+quote a number the CSV does not hold (tests/test_study.py checks the committed study).
+
+  python -m roboshape.study STUDY_DIR WORKDIR --name NAME [--cores N]   # add a probe, rebuild the README
+  python -m roboshape.study STUDY_DIR                                   # rebuild the README from the CSV
+"""
+import argparse
+import csv
+import io
+import json
+import os
+import sys
+from typing import Dict, List
+
+from roboshape import fileio
+from roboshape import rundir
+from roboshape.envs import MILESTONES
+from roboshape.errors import UserError
+
+CSV_NAME = "probes.csv"
+README_NAME = "README.md"
+BEGIN, END = "<!-- probes:begin (generated from probes.csv by roboshape.study) -->", "<!-- probes:end -->"
+IGNORED = ("data.dir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds", "savi.train.seeds", "seed",
+           "name")
+# What a probe keeps in the study (<study>/<probe>/, same layout): everything its row is read from, and the
+# evaluation's milestone table and the policy's validation curve.
+KEPT = ("config.json", "stages.json", "eval/results.csv", "eval/milestones.md", "policy/val_metrics.json",
+        "policy/val_metrics.png", "policy/seed_0/val_metrics.json", "savi/selected.json", "savi/val_metrics.json",
+        "savi/val_metrics.png")
+TIMED = ("pretrain", "cache", "train_policy", "evaluate")
+COLUMNS = (("probe", "task", "encoder", "variant", "changed", "rollouts", "successes", "success", "reached",
+            "val_mse_best", "best_step", "val_mse_last", "fg_ari") + tuple(f"{s}_s" for s in TIMED)
+           + ("cores", "core_hours"))
+
+
+def _flatten(tree, prefix: str = "") -> Dict:
+  out = {}
+  for key, value in tree.items():
+    path = f"{prefix}{key}"
+    if isinstance(value, dict):
+      out.update(_flatten(value, path + "."))
+    else:
+      out[path] = tuple(value) if isinstance(value, list) else value
+  return out
+
+
+def changed_fields(config: Dict) -> str:
+  """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults."""
+  from configs import common  # pylint: disable=import-outside-toplevel
+  default = _flatten(common.get_config(config["task"], config["encoder"], config["variant"]).to_dict())
+  ran = _flatten(config)
+  keys = sorted(k for k in set(ran) | set(default)
+                if ran.get(k) != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))
+  return "; ".join(f"{k}={ran.get(k)!r}" for k in keys)
+
+
+def _train_rollouts(workdir: str) -> List[Dict]:
+  path = os.path.join(workdir, "eval", rundir.RESULTS_CSV)
+  if not os.path.exists(path):
+    raise UserError(f"{path} does not exist: evaluate the run first (its `evaluate` stage).")
+  with open(path, newline="") as f:
+    return [r for r in csv.DictReader(f) if r["level"] == "train"]
+
+
+def _val_metrics(workdir: str) -> List[Dict]:
+  for rel in ("policy/seed_0/val_metrics.json", "policy/val_metrics.json"):
+    path = os.path.join(workdir, rel)
+    if os.path.exists(path):
+      with open(path) as f:
+        return json.load(f)
+  return []
+
+
+def _fg_ari(workdir: str) -> str:
+  """The served SAVi's final validation FG-ARI: the selected seed's (savi/selected.json), else the single run's."""
+  for rel in (f"savi/{rundir.SELECTION_FILE}", "savi/val_metrics.json"):
+    path = os.path.join(workdir, rel)
+    if not os.path.exists(path):
+      continue
+    with open(path) as f:
+      data = json.load(f)
+    if isinstance(data, dict):
+      data = [s for s in data.get("seeds", []) if s.get("seed") == data.get("selected_seed")]
+    if data and "fg_ari" in data[-1]:
+      return f"{data[-1]['fg_ari']:.3f}"
+  return ""
+
+
+def probe_row(workdir: str, name: str, cores: int = 1) -> Dict:
+  """The study's row of the evaluated run in `workdir` (see the module docstring)."""
+  config = rundir.load_config(workdir).to_dict()
+  rollouts = _train_rollouts(workdir)
+  if not rollouts:
+    raise UserError(f"{workdir} has no train-level rollouts in eval/results.csv: evaluate the train level.")
+  wins = sum(r["success"] == "True" for r in rollouts)
+  reached = [m for r in rollouts for m in r["reached"].split("+") if m]
+  metrics = [m for m in _val_metrics(workdir) if "action_mse" in m]
+  best = min(metrics, key=lambda m: m["action_mse"]) if metrics else None
+  stages = rundir.read_stage_log(workdir)
+  seconds = {s: stages.get(s, {}).get("seconds") for s in TIMED}
+  total = sum(v for v in seconds.values() if v)
+  row = dict(probe=name, task=config["task"], encoder=config["encoder"], variant=config["variant"],
+             changed=changed_fields(config) or "(none)", rollouts=len(rollouts), successes=wins,
+             success=f"{wins / len(rollouts):.2f}",
+             reached=" ".join(f"{m} {reached.count(m)}" for m in MILESTONES[config["task"]]),
+             val_mse_best=f"{best['action_mse']:.4f}" if best else "", best_step=best["step"] if best else "",
+             val_mse_last=f"{metrics[-1]['action_mse']:.4f}" if metrics else "", fg_ari=_fg_ari(workdir),
+             cores=cores, core_hours=f"{total * cores / 3600:.2f}")
+  row.update({f"{s}_s": "" if v is None else f"{v:.0f}" for s, v in seconds.items()})
+  return row
+
+
+def read_rows(study: str) -> List[Dict]:
+  path = os.path.join(study, CSV_NAME)
+  if not os.path.exists(path):
+    return []
+  with open(path, newline="") as f:
+    return list(csv.DictReader(f))
+
+
+def write_rows(study: str, rows: List[Dict]) -> None:
+  out = io.StringIO()
+  writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
+  writer.writeheader()
+  writer.writerows(rows)
+  fileio.atomic_write_text(os.path.join(study, CSV_NAME), out.getvalue())
+
+
+def table(rows: List[Dict]) -> str:
+  """The README's markdown table of `rows` (the CSV's rows, as strings)."""
+  head = ("| probe | task x encoder | changed from `:small` | train success | milestones reached | val action MSE "
+          "best (step) / last | FG-ARI | train_policy + evaluate (s) | core-h |")
+  lines = [head, "|" + " --- |" * head.count(" | ") + " --- |"]
+  for r in rows:
+    lines.append(f"| {r['probe']} | {r['task']} x {r['encoder']} | {r['changed']} | "
+                 f"{r['success']} ({r['successes']}/{r['rollouts']}) | {r['reached']} | "
+                 f"{r['val_mse_best']} ({r['best_step']}) / {r['val_mse_last']} | {r['fg_ari'] or '-'} | "
+                 f"{r['train_policy_s']} + {r['evaluate_s']} | {r['core_hours']} |")
+  return "\n".join(lines)
+
+
+def render(study: str) -> None:
+  """Rewrites the README's generated block from the CSV (the README must hold both markers)."""
+  path = os.path.join(study, README_NAME)
+  with open(path) as f:
+    text = f.read()
+  if BEGIN not in text or END not in text:
+    raise UserError(f"{path} lacks the markers of the generated table: add the lines {BEGIN} and {END}.")
+  head, rest = text.split(BEGIN, 1)
+  _, tail = rest.split(END, 1)
+  fileio.atomic_write_text(path, f"{head}{BEGIN}\n{table(read_rows(study))}\n{END}{tail}")
+
+
+def keep_files(workdir: str, folder: str) -> List[str]:
+  """Copies the files a probe's row is read from (KEPT, where present) from `workdir` to `folder`, in the same
+  layout, so `probe_row(folder, ...)` gives the row again; returns the relative paths copied."""
+  import shutil  # pylint: disable=import-outside-toplevel
+  copied = []
+  for rel in KEPT:
+    source = os.path.join(workdir, rel)
+    if os.path.exists(source):
+      os.makedirs(os.path.dirname(os.path.join(folder, rel)), exist_ok=True)
+      shutil.copyfile(source, os.path.join(folder, rel))
+      copied.append(rel)
+  return copied
+
+
+def add(study: str, workdir: str, name: str, cores: int = 1) -> Dict:
+  """Adds (or replaces) the probe `name` from `workdir`: its files in <study>/<name>/ (keep_files), its row in the
+  CSV; then rebuilds the README's table."""
+  row = probe_row(workdir, name, cores)
+  keep_files(workdir, os.path.join(study, name))
+  rows = [r for r in read_rows(study) if r["probe"] != name] + [row]
+  write_rows(study, rows)
+  render(study)
+  return row
+
+
+def main(argv) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n", 1)[0])
+  parser.add_argument("study")
+  parser.add_argument("workdir", nargs="?")
+  parser.add_argument("--name")
+  parser.add_argument("--cores", type=int, default=1)
+  args = parser.parse_args(argv)
+  try:
+    if args.workdir:
+      if not args.name:
+        raise UserError("name the probe: --name NAME (its row in probes.csv).")
+      print(add(args.study, args.workdir, args.name, args.cores))
+    else:
+      render(args.study)
+  except UserError as e:
+    print(f"roboshape: {e}", file=sys.stderr)
+    return 2
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv[1:]))

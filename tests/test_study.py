@@ -1,0 +1,90 @@
+"""The probe study (roboshape/study.py): a row read from a run's files, and a README that equals its CSV."""
+import csv
+import json
+import os
+
+import pytest
+
+from configs import common
+from roboshape import study
+from roboshape.errors import UserError
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RECIPE = os.path.join(ROOT, "results", "small", "recipe")
+
+
+def _fake_run(workdir, **changes):
+  config = common.get_config("push", "objects", "small")
+  for field, value in changes.items():
+    common.override(config, f"{field}={value!r}")
+  os.makedirs(os.path.join(workdir, "eval"))
+  os.makedirs(os.path.join(workdir, "policy"))
+  with open(os.path.join(workdir, "config.json"), "w") as f:
+    json.dump(config.to_dict(), f)
+  rows = [dict(task="push", encoder="objects", train_seed="", level=level, seed_index=0, rollout=i, seed=i,
+               success=str(i < 3), length=10, ended="", reached="moved+halfway+on_target" if i < 3 else
+               ("moved" if i == 3 else "")) for level in ("train", "L1") for i in range(5)]
+  with open(os.path.join(workdir, "eval", "results.csv"), "w", newline="") as f:
+    writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+  with open(os.path.join(workdir, "policy", "val_metrics.json"), "w") as f:
+    json.dump([dict(step=500, action_mse=0.09), dict(step=1000, action_mse=0.07), dict(step=1500, action_mse=0.08)],
+              f)
+  with open(os.path.join(workdir, "stages.json"), "w") as f:
+    json.dump({"collect": {"seconds": 99.0}, "cache": {"seconds": 5.0}, "train_policy": {"seconds": 600.0},
+               "evaluate": {"seconds": 115.0}}, f)
+
+
+def test_a_probe_row_reads_the_runs_files_and_names_only_what_changed(tmp_path):
+  workdir = str(tmp_path / "run")
+  _fake_run(workdir, **{"policy.history": 2, "data.dir": "/elsewhere", "eval.levels": ("train",)})
+  row = study.probe_row(workdir, "h2", cores=2)
+  assert row["changed"] == "policy.history=2"          # data.dir and eval.levels are bookkeeping
+  assert (row["rollouts"], row["successes"], row["success"]) == (5, 3, "0.60")   # the train level only
+  assert row["reached"] == "moved 4 halfway 3 on_target 3"
+  assert (row["val_mse_best"], row["best_step"], row["val_mse_last"]) == ("0.0700", 1000, "0.0800")
+  assert (row["train_policy_s"], row["pretrain_s"], row["core_hours"]) == ("600", "", f"{720 * 2 / 3600:.2f}")
+
+
+def test_adding_probes_rewrites_the_csv_and_the_readme_block_only(tmp_path):
+  study_dir = tmp_path / "study"
+  study_dir.mkdir()
+  (study_dir / "README.md").write_text(f"intro\n{study.BEGIN}\nold\n{study.END}\nafter\n")
+  for name, history in (("a", 2), ("b", 3), ("a", 4)):       # a second "a" replaces the first
+    workdir = str(tmp_path / f"run_{name}_{history}")
+    _fake_run(workdir, **{"policy.history": history})
+    study.add(str(study_dir), workdir, name)
+  rows = study.read_rows(str(study_dir))
+  assert [(r["probe"], r["changed"]) for r in rows] == [("b", "policy.history=3"), ("a", "policy.history=4")]
+  text = (study_dir / "README.md").read_text()
+  assert text.startswith("intro\n") and text.endswith("\nafter\n") and "old" not in text
+  assert study.table(rows) in text
+  assert sorted(os.listdir(study_dir / "a")) == ["config.json", "eval", "policy", "stages.json"]
+  assert study.probe_row(str(study_dir / "a"), "a") == study.probe_row(str(tmp_path / "run_a_4"), "a")
+
+
+def test_a_readme_without_markers_and_an_unevaluated_run_are_one_line_errors(tmp_path):
+  (tmp_path / "README.md").write_text("no markers\n")
+  with pytest.raises(UserError, match="lacks the markers"):
+    study.render(str(tmp_path))
+  assert (tmp_path / "README.md").read_text() == "no markers\n"
+  with pytest.raises(UserError, match="config.json not found"):
+    study.probe_row(str(tmp_path / "nothing"), "x")
+  workdir = str(tmp_path / "run")
+  _fake_run(workdir)
+  os.remove(os.path.join(workdir, "eval", "results.csv"))
+  with pytest.raises(UserError, match="evaluate the run first"):
+    study.probe_row(workdir, "x")
+
+
+def test_the_committed_recipe_study_readme_equals_its_csv_and_the_csv_its_probes_files():
+  rows = study.read_rows(RECIPE)
+  assert rows, "results/small/recipe/probes.csv holds no probe"
+  for row in rows:
+    again = study.probe_row(os.path.join(RECIPE, row["probe"]), row["probe"], int(row["cores"]))
+    assert {k: str(v) for k, v in again.items()} == row
+  with open(os.path.join(RECIPE, "README.md")) as f:
+    text = f.read()
+  block = text.split(study.BEGIN, 1)[1].split(study.END, 1)[0]
+  assert block.strip() == study.table(rows)
