@@ -6,7 +6,9 @@ weights are absent: <run>/SKIPPED.json written by the grid) or that has no resul
 "skipped: <reason>" line and as "-" cells, never as a crash.
 
 `python -m roboshape.eval.report RESULTS_ROOT` builds the same report over runs published one by one
-(roboshape/eval/publish.py: <root>/<task>_<encoder>/results.csv, e.g. results/small) into <root>/report/.
+(roboshape/eval/publish.py: <root>/<task>_<encoder>/results.csv, e.g. results/small) into <root>/report/, and
+rewrites the generated summary block of each published run's README.md from its results.csv and config.json
+(roboshape/eval/readme.py).
 
 Outputs in <workdir>/report/: report.md (everything, with the commands' provenance), table_<task>.md and
 table_<task>.tex per task, overall.png (mean success per encoder and level across tasks, the paper's overall
@@ -24,6 +26,7 @@ from roboshape.envs import TASKS
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
 from roboshape.eval import plots
+from roboshape.eval import readme
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
 
@@ -68,8 +71,10 @@ def load_published(folder: str) -> Dict:
     raise UserError(f"{folder}/{rundir.RESULTS_CSV} holds no rollouts: publish the run again once it is evaluated.")
   rollouts = [dict(r, train_seed=int(r["train_seed"]) if r.get("train_seed") else None,
                    seed_index=int(r["seed_index"]), rollout=int(r["rollout"]), seed=int(r["seed"]),
-                   success=r["success"] == "True", length=int(r["length"]),
-                   reached=[m for m in (r.get("reached") or "").split("+") if m]) for r in rows]
+                   success=r["success"] == "True", length=int(r["length"])) for r in rows]
+  if "reached" in rows[0]:          # a CSV of a run evaluated before milestones were recorded has no such column
+    for r in rollouts:
+      r["reached"] = [m for m in (r["reached"] or "").split("+") if m]
   levels = {r["level"] for r in rollouts}
   return dict(task=rows[0]["task"], encoder=rows[0]["encoder"], summary=results_lib.summarize(rollouts),
               rollouts=rollouts, levels=[l for l in LEVEL_NAMES if l in levels],
@@ -77,9 +82,24 @@ def load_published(folder: str) -> Dict:
               rollouts_per_seed=1 + max(r["rollout"] for r in rollouts))
 
 
+def published_config(folder: str) -> Dict:
+  """A published run's config.json as a dict ({} when the folder has none)."""
+  path = os.path.join(folder, "config.json")
+  if not os.path.isfile(path):
+    return {}
+  with open(path) as f:
+    return json.load(f)
+
+
+def cell_block(folder: str) -> str:
+  """The generated summary block (roboshape/eval/readme.py) of the run published in `folder`, from its files."""
+  return readme.block(load_published(folder), published_config(folder))
+
+
 def build_published_report(root: str) -> Dict[str, str]:
   """The report over the runs published under `root` (<root>/<task>_<encoder>/results.csv, e.g. results/small),
-  written into <root>/report/; every task x encoder pair without a published run is marked missing."""
+  written into <root>/report/; every task x encoder pair without a published run is marked missing. Rewrites the
+  summary block of each published run's README.md."""
   if not os.path.isdir(root):
     raise UserError(f"{root} is not a folder: give the folder runs are published to (e.g. results/small).")
   found, out_dir = {}, rundir.report_dir(root)
@@ -88,10 +108,12 @@ def build_published_report(root: str) -> Dict[str, str]:
       continue                      # this report's own output: its results.csv pools every run's rollouts
     if os.path.isfile(os.path.join(root, name, rundir.RESULTS_CSV)):
       run = load_published(os.path.join(root, name))
-      found[(run["task"], run["encoder"])] = run
+      found[(run["task"], run["encoder"])] = dict(run, folder=os.path.join(root, name))
   if not found:
     raise UserError(f"{root} holds no published run (<task>_<encoder>/{rundir.RESULTS_CSV}): publish one first "
                     "(configs/reproduce.py with grid.publish, or roboshape.eval.publish).")
+  for run in found.values():       # every run read back before any README is rewritten
+    readme.write(run["folder"], run, published_config(run["folder"]))
   tasks = [t for t in TASKS if t in {t for t, _ in found}] + sorted({t for t, _ in found} - set(TASKS))
   encoders = list(dict.fromkeys(e for _, e in found))
   runs = [(t, e, os.path.join(root, f"{t}_{e}")) for t in tasks for e in encoders]
