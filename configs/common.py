@@ -27,11 +27,10 @@ MODIFIERS = {"chunk": 8}   # variant suffix -> policy.chunk
 LEVELS = envs.LEVEL_NAMES  # the training distribution and the three shifts (roboshape/envs/palettes.py)
 STAGES = rundir.STAGES     # every stage, in the order a run takes them
 # How a task's policies are run at control time where it differs from policy_config's eval defaults, for every
-# encoder alike. Place: a mode drawn from the GMM rather than the mixture mean (which averages "close" with "open"
-# and "lift" with "descend" at the grasp), one frame of history (ten let the policy copy its own past motion). The
-# state control's success at place's train level: 1/60 with the defaults, 4/60 sampled, 13/60 and 6/60 (two sets
-# of draws) sampled with one frame, 0/60 one frame with the mean; grasped 2, 29, 54, 1 of 60
-# (results/small/place_state/README.md).
+# encoder alike. Place: a mode drawn from the GMM rather than the mixture mean, which averages "close" with "open"
+# and "lift" with "descend" at the grasp, so the gripper hovers half shut; and one frame of history, since with ten
+# the policy reads its next action off its own past motion and copies its own slowing. Push and pick keep the
+# defaults. The trials that chose this (each setting alone and both): results/small/place_state/README.md.
 TASK_CONTROL = {"place": dict(action="sample", history=1)}
 
 
@@ -79,33 +78,21 @@ def data_config(variant: str) -> ml_collections.ConfigDict:
 def savi_config(variant: str) -> ml_collections.ConfigDict:
   """SAVi, the object-centric video encoder (roboshape/models/savi.py, roboshape/train/pretrain.py).
 
-  paper: SAVi-S (google-research/slot-attention-video, savi_conditional_small.py, with the unconditional learned
-  Gaussian first slots) on 64x64: 32-channel 5x5 convs at full resolution, a position embedding and a 64-wide MLP
-  back to 32 features; slot size 128; a transformer-block predictor of 4 heads and MLP 256; a decoder from an 8x8
-  broadcast through three 5x5 stride-2 transposed convs and a 5x5 conv, all of 64 channels, then a 1x1 layer to
-  RGB + alpha. The corrector follows SAVi-S too: one slot-attention iteration per frame and no MLP after the GRU
-  (num_iterations=1, no mlp_size there); the paper's "iteratively cross-attended" does not fix a count, and SAVi
-  refines the slots across frames through the recurrence rather than within one.
-  Parameters (savi.parameter_count): 878,980, about 27 times fewer than R3M-50's 23.5M (2,184,868 before, with a
-  sub-pixel decoder, 2 iterations with a 256-wide corrector MLP and 64 encoder features). SAVi-S with the learned
-  Gaussian first slots has 853,028 (886,948 with its conditional initializer's MLP); the 25,952 more here are a
-  fifth encoder conv (25,632: the paper says five, SAVi-S has four) and 4 coordinate channels instead of 2 in the
-  two position embeddings (320).
-  Loss and clip: the loss is a mean over the pixel values; SAVi's is the sum over a clip's 6 x 64 x 64 x 3 = 73,728
-  values (meaned over clips), whose gradient is 73,728 times larger. :paper clips the mean's gradient at SAVi's
-  0.05 / 73,728 and Adam's epsilon scales with the clip (roboshape/train/pretrain.py:make_optimizer), which gives
-  SAVi's updates exactly, as Adam sees the gradients' scale only through the clip and epsilon. :small and :tiny
-  keep 0.05 on the mean, which their measured runs used (SAVi's clip at :small's 6 pooled 32x32 frames would be
-  0.05 / 18,432). small: the same design made cheap enough for a 2-core CPU: it models the frames
-  average-pooled to 32x32 (pool=2; its masks are scored at 64x64), the first conv has stride 2, the decoder has two
-  3x3 stride-2 layers of 32 and 16 channels for the alpha masks (it runs once per slot) from a learned vector per
-  8x8 grid cell (decoder.position="learned") and paints each slot in one colour (decoder.rgb="slot"), with 9 slots
-  (no spares). It trains the way that moved FG-ARI off zero here:
-  learned initial slots without noise, 3 slot-attention iterations with the gradient of the last one only, a
-  predictor that starts as LayerNorm, and clips of 6 frames x 4 (0.5 s per step alone on the 2-core CPU, 8000
-  steps ~ 70 min), and reconstructs the depth as well (train.depth_weight=0.25, env.depth=True): validation FG-ARI
-  0.611 at step 2500, 0.58-0.60 at 3000-3500 (results/savi_small/README.md has every curve).
+  paper: SAVi-S (google-research/slot-attention-video, savi_conditional_small.py, with its unconditional learned
+  Gaussian first slots) on 64x64 frames, with its corrector (one slot-attention iteration per frame and no MLP: SAVi
+  refines the slots across frames through the recurrence) and two departures: a fifth encoder conv, as the paper
+  says, and 4 coordinate channels in the position embeddings. Parameter counts: results/savi_small/README.md.
+  small: the same design made cheap enough for a 2-core CPU (frames pooled to 32x32, masks scored at 64x64; a
+  stride-2 first conv; a decoder of alpha masks only, from a learned vector per grid cell, with one colour per slot;
+  9 slots, no spares), trained the way that moved FG-ARI off zero on this data (learned queries without noise, 3
+  iterations with the last one's gradient, a predictor that starts as LayerNorm, a depth target); every variant
+  tried and its curve: results/savi_small/README.md.
   tiny: a toy model for tests and `make demo`.
+
+  train.clip_norm clips the gradient of the loss, a mean over a clip's pixel values. SAVi's loss is their sum, whose
+  gradient is larger by the number of values, so :paper clips at SAVi's 0.05 divided by that number; as Adam's
+  epsilon scales with the clip (pretrain.make_optimizer), that gives SAVi's updates exactly. :small and :tiny keep
+  0.05 on the mean, the setting their published runs were trained with.
   """
   paper = variant == "paper"
   return ml_collections.ConfigDict(dict(

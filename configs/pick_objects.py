@@ -2,10 +2,9 @@
 
 Command:  python launch.py --config=configs/pick_objects.py:small --workdir=runs/pick_objects
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
-Runtime, :small on the 2-core CPU machine: collect 232.6 s (200 + 10 episodes, measured with pick_state, the same
-dataset, the cores shared with two other runs); cache 5.6 s, train_policy about 5200 s (5000 steps, one core, the
-other busy), evaluate 954 s.
-Result: :small 0.03 at the train level, L1 0.03, L2 0.05, L3 0.03 (results/small/pick_objects/); 3 of 60 grasp.
+Runtime:  about two hours per training seed on one core at :small (mostly behaviour cloning on a token per object),
+          plus the task's collection (minutes, shared by its runs); each cell's stage times: results/small/README.md.
+Results:  results/small/pick_objects/README.md
 Reads observation/image and observation/segmentation (every dataset stores them), and observation/depth too where
 env.depth is set (the :small). No pretraining. Token layout: roboshape/encoders/objects.py.
 """

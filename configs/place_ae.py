@@ -3,9 +3,10 @@ is: the same frames, steps, batches, schedule and loss, read from config.savi; f
 
 Command:  python launch.py --config=configs/place_ae.py:small --workdir=runs/place_ae
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime: :small on one core of the 2-core CPU (the other busy): pretrain 637 s (8000 steps), cache 11.8 s,
-         train_policy 734 s, evaluate 1159 s.
-Result: :small 0.00 at every level, no rollout grasps (results/small/place_ae/); reconstruction MSE 0.0196.
+Runtime:  under an hour on one core at :small, plus the task's collection (minutes, shared by its runs); each cell's
+          stage times: results/small/README.md.
+Results:  results/small/place_ae/README.md
+Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 Its pretrain stage is roboshape/train/pretrain_ae.py; ae.latent_size sets the token width (0: savi.slot_size).
 """
 from configs import common

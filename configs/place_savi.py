@@ -2,10 +2,11 @@
 
 Command:  python launch.py --config=configs/place_savi.py:small --workdir=runs/place_savi
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime: :small on one core of the 2-core CPU (the other busy): pretrain about 60 min (8000 steps, resumed once),
-         cache 23 s, train_policy 3827 s, evaluate 1265 s.
-Result: :small 0.00 at every level, 1 of 240 rollouts grasps (results/small/place_savi/); FG-ARI 0.286, no slot
-        follows the cube. :paper: not yet measured.
+Runtime:  about two and a half hours on one core at :small (SAVi's pretraining and the behaviour cloning about an hour
+          each), plus the task's collection (minutes, shared by its runs); each cell's stage times:
+          results/small/README.md.
+Results:  results/small/place_savi/README.md
+Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 """
 from configs import common
 

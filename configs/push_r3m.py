@@ -2,9 +2,9 @@
 
 Command:  python launch.py --config=configs/push_r3m.py:small --workdir=runs/push_r3m
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/push)
-Runtime, :small on the 2-core CPU machine: collect 110.6 s (200 + 10 episodes, measured with push_state, the same
-dataset, the cores shared with two other runs); the other stages not yet measured.
-Result: not yet measured (the official weights cannot be downloaded on the 2-core CPU machine).
+Runtime:  not yet timed (no pretraining; the cache stage runs the frozen ResNet once over every frame); each cell's
+          stage times: results/small/README.md.
+Results:  results/small/push_r3m/README.md (not published yet: the grid skips the cell where the weights are absent)
 Needs the official weights (README.md, "Weights of the R3M and DINO baselines"). No pretrain stage.
 """
 from configs import common

@@ -3,21 +3,22 @@
 
 Command:  python launch.py --config=configs/reproduce.py[:tiny|small|paper] --workdir=runs/reproduce_<variant>
           (`make demo` runs the :tiny variant into runs/demo)
+Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about half a day on a 2-core CPU (two lanes); :paper
+          GPU-days (benchmarks/gpu_scaleup.py estimates them). Stage times and the :small estimate:
+          results/small/README.md.
+Results:  results/small/README.md (one folder per cell, results/small/<task>_<encoder>/README.md)
 
 Variants:
   tiny:  push x SAVi at the tiny scale (4 demos, 20 training steps, 1 seed x 2 rollouts per level): checks the
-         whole pipeline end to end. Measured: 1m39s (`make demo`) on the 2-core CPU machine once set up, with
-         nothing else running. Its success rates mean nothing (20 training steps).
+         whole pipeline end to end; its success rates mean nothing (20 training steps).
   small: {push, pick, place} x {SAVi, AE, Objects, State, R3M, DINO} at the small scale (200 demos, 3 seeds x 20
-         rollouts per level): days on a 2-core CPU, resumable run by run. Each run's results are copied to
+         rollouts per level), resumable run by run. Each run's results are copied to
          results/small/<task>_<encoder>/ as soon as it is evaluated (grid.publish), so the table survives the
          machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending and how long
          each stage took. Two runs at once (grid.lanes=2), each pinned to one core, each logging to
          <run>/log.txt. Baselines whose weights are absent (config.baselines.*.path) are skipped, said in the
-         report. Measured: the push row (4 encoders, one training seed, one SAVi seed:
-         --config.grid.tasks="('push',)" --config.grid.train_seeds.push="()" --config.savi.train.seeds="(0,)")
-         in 1 h 30 min end to end on a 2-core CPU; the grid as configured about 9 h (stage times per run and the
-         estimate: results/small/README.md).
+         report. One task's row alone: --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
+         --config.savi.train.seeds="(0,)" for one training seed and one SAVi seed).
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 
 Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<encoder>/ (one run:
@@ -51,8 +52,8 @@ def get_config(variant: str = "paper"):
   config.grid = ml_collections.ConfigDict(dict(
       tasks=tasks, encoders=encoders,
       publish="results/small" if variant == "small" else "",   # where each evaluated run's results are copied
-      # runs at once, each a child process pinned to its share of the cores: two on the 2-core CPU machine (why, with
-      # the measured steps/s: roboshape/lanes.py)
+      # runs at once, each a child process pinned to its share of the cores: two on the 2-core CPU machine (why:
+      # roboshape/lanes.py)
       lanes=2 if variant == "small" else 1,
       # {task: policy.train_seeds} for the runs of that task: three training seeds per run, as the paper repeats
       # each experiment 3 times; at :small only push (training seeds triple the behaviour cloning's time)

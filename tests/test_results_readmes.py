@@ -1,9 +1,12 @@
 """Every committed results README's numbers come from its files: the generated summary block of each published cell
 (roboshape/eval/readme.py, written by `python -m roboshape.eval.report ROOT`) equals what its results.csv and
-config.json give, and the tool rewrites that block and nothing else."""
+config.json give, and the tool rewrites that block and nothing else. The experiment configs point to those READMEs
+and quote no result of their own."""
+import ast
 import csv
 import json
 import os
+import re
 
 import pytest
 
@@ -14,6 +17,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = os.path.join(ROOT, "results", "small")
 CELLS = sorted(name for name in os.listdir(SMALL)
                if name != "report" and os.path.isfile(os.path.join(SMALL, name, "results.csv")))
+EXPERIMENTS = sorted(name[:-3] for name in os.listdir(os.path.join(ROOT, "configs"))
+                     if re.fullmatch(r"(push|pick|place)_[a-z0-9]+\.py", name)) + ["reproduce"]
+# what a quoted result looks like: a rate or score with two decimals, a count of rollouts, a date
+RESULT = re.compile(r"(?<![\w.])[01]\.\d\d|\b\d+ of (60|180|240)\b|/(60|180|240)\b|\b20\d\d-\d\d-\d\d\b")
 FIELDS = ("task", "encoder", "train_seed", "level", "seed_index", "rollout", "seed", "success", "length", "ended")
 
 
@@ -31,6 +38,17 @@ def test_a_committed_readme_block_equals_what_its_results_csv_and_config_json_gi
   assert f"{readme.BEGIN}\n{body}{readme.END}" == report.cell_block(folder), (
       f"{cell}/README.md's summary block is stale: run python -m roboshape.eval.report results/small")
   assert text.index(readme.BEGIN) < text.index("\n\n") + 3      # right after the title line
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_an_experiment_config_gives_its_command_runtime_and_results_readme_and_quotes_no_result(name):
+  with open(os.path.join(ROOT, "configs", f"{name}.py")) as f:
+    doc = ast.get_docstring(ast.parse(f.read()))
+  assert f"python launch.py --config=configs/{name}.py" in doc and "\nRuntime:  " in doc
+  readme_path = re.search(r"\nResults:  (\S+)", doc).group(1)
+  assert readme_path == ("results/small/README.md" if name == "reproduce" else f"results/small/{name}/README.md")
+  assert os.path.isfile(os.path.join(ROOT, readme_path)) or "not published yet" in doc
+  assert RESULT.search(doc) is None, f"configs/{name}.py quotes a result; it belongs in {readme_path}"
 
 
 def _write_csv(folder, rows, reached=True):
