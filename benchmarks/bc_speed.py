@@ -14,8 +14,8 @@ One run times, alternately (round after round, the median of each kept, to damp 
                [B*L, W] x [W, 4W], L = H x tokens + H read-out tokens), on the same device.
 Prints each one's time, FLOPs (XLA cost analysis of the one-device step) and FLOP/s, and the FLOP/s as a fraction
 of the 2048^3 matmul's. The bar, for the fastest step train_policy runs here (split over the cores): >= 0.6 of the
-matmul, or >= 2x the one-device step's steps/s, both measured in this run (the 0.50 s step the bar was set
-against came from the first 2-core machine, whose 2048^3 matmul ran at 181-209 GFLOP/s; printed for reference).
+matmul, or >= 2x the one-device step's steps/s, both measured in this run (BASELINE_STEP_S, the step the bar was
+set against on another 2-core machine, is printed for reference).
 The trunk-shaped matmuls say what the step's dense layers could reach; the gap between them and the step
 is the rest of the step (attention's small batched products, softmax, masks, layer norms, the optimizer).
 """
@@ -39,7 +39,7 @@ from roboshape.models import policy as policy_lib  # pylint: disable=wrong-impor
 from roboshape.train import bc  # pylint: disable=wrong-import-position
 from roboshape.train import sharding  # pylint: disable=wrong-import-position
 
-BASELINE_STEP_S = 0.50   # the :small step on the 2-core CPU when the bar was set (29.2 GFLOP, 58 GFLOP/s; matmul 181)
+BASELINE_STEP_S = 0.50   # the :small step when the bar was set, on the first 2-core CPU (results/small/README.md)
 
 
 def compiled_step(policy_config, tokens: int, token_dim: int, dp=None):

@@ -8,7 +8,7 @@ In one pool (same workers, same run), alternately:
           weights (speed does not depend on the weights): the policy runs in this process, batched over the
           pool's envs, exactly as the evaluate stage runs it. Env steps/s counts only live env steps.
 Each is measured `--rounds` times, alternately (expert, policy, expert, policy, ...), and the best of each kept, to
-damp the noise of a shared machine (the expert's own rate varies by 15% between rounds). Prints both rates, their
+damp the noise of a shared machine (the expert's own rate varies between rounds). Prints both rates, their
 ratio (the bar: >= 0.8 on a 2-core CPU), the policy's own cost per batched step, and what the paper's evaluation
 grid (3 tasks x 3 encoders x 4 levels x 300 rollouts) would take at the measured rate.
 Then the simulator alone, the same envs stepped with the same actions, rendered (what a camera policy's rollouts

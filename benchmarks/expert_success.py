@@ -7,7 +7,7 @@
 seeded by the env seed: the expert's success when its actions carry errors like those a policy adds, i.e. how
 precise a policy imitating it has to be.
 
-Runs without a camera (obs_mode state, about 4 ms per step on CPU) since the expert reads simulator state only.
+Runs without a camera (obs_mode state: the physics alone, no rendering) since the expert reads simulator state only.
 Prints one row per task x level: success %, episode length p50 / p95 / max over successful episodes, the horizon and
 whether it is >= 1.5x the p95 length. Seeds start at --first_seed (default 1_000_000, away from dataset seeds).
 """

@@ -125,8 +125,8 @@ def host_device_per_core(override: bool = False) -> int:
   over the cores (roboshape/train/sharding.py); returns the count. Call before jax is imported: launch.py and each
   grid lane (for its own cores) do. An XLA_FLAGS that already sets the count is kept unless `override`.
 
-  Measured on the 2-core CPU (benchmarks/savi_speed.py, bc_speed.py): the `:small` SAVi pretraining step 1.44-1.49x
-  and the BC step 1.12-1.27x faster on two devices than on one device using both cores.
+  Why: on a CPU, XLA runs one device's step on all its cores less well than one step per core with the batch split
+  (benchmarks/savi_speed.py and bc_speed.py time both; the `:small` figures: results/small/README.md).
   """
   flags_now = os.environ.get("XLA_FLAGS", "").split()
   given = [f for f in flags_now if f.startswith(HOST_DEVICES_FLAG + "=")]

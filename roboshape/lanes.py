@@ -1,11 +1,10 @@
 """A grid's runs in parallel lanes: up to `grid.lanes` runs at once, each a child process pinned to its own cores.
 
-On a 2-core CPU two runs pinned one per core do at least the work of one run on both cores. First machine: a
-`:small` behaviour-cloning step took 0.70 s on one core and 0.50 s on both (2.9 vs 2.0 steps/s for the machine).
-Second machine, where a run makes its cores JAX devices (roboshape/cli.py): BC 480 ms on one core, 243 ms over two
-devices (4.2 vs 4.1 steps/s); SAVi 0.402 s vs 0.212 s (5.0 vs 4.7 steps/s). Lanes also overlap stages that use the
-cores badly (collection's resets, evaluation). `configs/reproduce.py:small` therefore runs two lanes; each lane's
-child makes its own cores its devices.
+Why lanes: on a 2-core CPU two runs pinned one per core do at least the work of one run spread over both cores (the
+`:small` behaviour-cloning and SAVi steps scale less than linearly with cores, even with the cores as JAX devices,
+roboshape/cli.py; the step times on both 2-core machines: results/small/README.md), and lanes also overlap stages
+that use the cores badly (collection's resets, evaluation). `configs/reproduce.py:small` therefore runs two lanes;
+each lane's child makes its own cores its devices.
 
   run_parallel(jobs, lanes, on_done)     # jobs: (name, config, run_dir); on_done(job, exit code, last line)
 

@@ -31,8 +31,8 @@ def default_path(arch: str) -> str:
 
 
 # The batch runs through the ResNet as this many independent slices. XLA's CPU backend executes independent
-# convolutions concurrently, which keeps the cores busier than one convolution split across them (ResNet-18 on
-# 32 frames: about 20% faster on 2 cores). Every frame's numbers are unchanged; the graph is this many times larger.
+# convolutions concurrently, which keeps the cores busier than one convolution split across them (the gain on the
+# 2-core CPU: results/small/README.md). Every frame's numbers are unchanged; the graph is this many times larger.
 _PARALLEL_SLICES = 4
 
 

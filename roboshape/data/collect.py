@@ -14,7 +14,7 @@ after the last committed shard: nothing is lost and nothing is written twice. A 
 rewritten; a dataset of another config in the same place is refused.
 
 Damaged shards: whenever it finds a dataset, the stage checks every recorded shard's size and sha256 against
-roboshape.json (about 30 ms for a :small dataset) and re-collects a missing, truncated or corrupted shard from its
+roboshape.json (a fraction of a second for a :small dataset) and re-collects a missing, truncated or corrupted shard from its
 recorded seeds; the new file replaces it only when it is byte for byte the recorded one (`repair_shards`).
 """
 import contextlib

@@ -200,7 +200,7 @@ def shard_problems(path: str, state: Mapping[str, Any], splits: Optional[Sequenc
     path: the dataset directory.
     state: its roboshape.json (`load_state`).
     splits: the splits to check (default: all).
-    hashes: also compare the sha256 of every shard whose size matches (about 30 ms for a :small dataset).
+    hashes: also compare the sha256 of every shard whose size matches (a fraction of a second for a :small dataset).
   Returns:
     [{"split", "index", "file", "problem"}], problem e.g. "missing" or "truncated or changed (10 bytes, 20
     recorded)", in split and shard order.

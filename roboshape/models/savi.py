@@ -155,8 +155,8 @@ class Upsample(nn.Module):
   """A learned upsampling by `stride` (a plain convolution when stride is 1, a Dense layer when the kernel is 1x1).
 
   "subpixel": a convolution to stride * stride * C channels, then depth-to-space; "transpose": a transposed
-  convolution. Both learn the same family of upsamplings; XLA's CPU backend runs the sub-pixel form faster
-  (measured: a 3x3 stride-2 layer, forward + backward, 4x less time), GPUs run both well.
+  convolution. Both learn the same family of upsamplings; XLA's CPU backend runs the sub-pixel form several times
+  faster (results/small/README.md), GPUs run both well.
   x [B, H, W, C_in] -> [B, H * stride, W * stride, features]
   """
   features: int

@@ -10,7 +10,8 @@ Commands:
   reset (seed, render) -> one env's frame dict (image, segmentation, state, [depth,] success, done, elapsed,
                      reached: bool [M], the task's milestones reached so far, roboshape.envs.MILESTONES);
                      with render False the camera is not rendered until the next reset: image, segmentation (and
-                     depth) are zeros, the state is real (about 4 ms a step instead of 32 ms on a CPU renderer)
+                     depth) are zeros, the state is real (a step then costs the physics alone, several times
+                     less than a rendered one on a CPU renderer)
   step action     -> frame dict after executing `action` float32 [7] (a no-op once the episode is done)
   close           -> exits
 """
@@ -52,7 +53,7 @@ class Worker:
     self.reached = np.zeros(len(envs.MILESTONES[spec["task"]]), bool)
     self.elapsed, self.success, self.done = 0, False, True
     # Every reset rebuilds the scene, and ManiSkill then runs gc.collect(), which scans every object of this process:
-    # about 160 ms of a 230 ms reset. Freezing what start-up built (modules, the env) leaves it out of those scans.
+    # most of a reset's time. Freezing what start-up built (modules, the env) leaves it out of those scans.
     gc.freeze()
 
   def info(self) -> dict:

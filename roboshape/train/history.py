@@ -1,6 +1,6 @@
 """Validation history of a training run: a JSON list of results per step, kept across resumes, and its curve.
 
-  history.record(root, "val_metrics", step, {"fg_ari": 0.61, "miou": 0.5}, train_seconds, keys=("fg_ari", "miou"))
+  history.record(root, "val_metrics", step, {"fg_ari": 0.5, "miou": 0.4}, train_seconds, keys=("fg_ari", "miou"))
   -> <root>/val_metrics.json  [{"step": ..., "train_seconds": ..., "fg_ari": ..., ...}, ...]
      <root>/val_metrics.png   the keys against the step (`metric_curve`)
 """
