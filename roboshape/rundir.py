@@ -21,6 +21,8 @@ instead, each as savi/ above, and the choice among them:
   <savi_dir>/seeds_<metric>.png  every seed's validation curve of the selection metric       (`seeds_figure`)
 With seeds = () (the default) there is one run, with config.seed, in savi/ itself, as above.
 """
+import contextlib
+import fcntl
 import json
 import os
 
@@ -33,6 +35,7 @@ SKIPPED_FILE = "SKIPPED.json"      # a grid run skipped for bad input: {"reason"
 CHECKPOINTS = "checkpoints"
 RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and the per-level summary
 RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run's): one row per rollout
+RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run working in the workdir (`hold_workdir`)
 SELECTION_FILE = "selected.json"   # <savi_dir>/selected.json: the seed of savi.train.seeds that pretraining selected
 
 
@@ -195,3 +198,32 @@ def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> 
   log[stage] = entry
   os.makedirs(workdir, exist_ok=True)
   fileio.atomic_write_json(stage_log_path(workdir), log)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# One run per workdir.
+
+@contextlib.contextmanager
+def hold_workdir(workdir: str):
+  """Holds <workdir>/.run.lock for the body: an exclusive flock, which the operating system releases when the
+  holder dies however it dies (a killed run never blocks the next one). The file holds the holder's pid. A second
+  run on a held workdir gets a UserError naming that pid, before it writes anything else: two runs on one workdir
+  would train, evaluate and log into the same files."""
+  os.makedirs(workdir, exist_ok=True)
+  path = os.path.join(workdir, RUN_LOCK)
+  with open(path, "a+") as f:
+    try:
+      fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      f.seek(0)
+      holder = f.read().strip() or "unknown"
+      raise UserError(f"{workdir} is in use by another run (pid {holder}): wait for it to end, or stop that run "
+                      "first; two runs on one workdir would write the same files.") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    try:
+      yield
+    finally:
+      fcntl.flock(f.fileno(), fcntl.LOCK_UN)

@@ -102,27 +102,29 @@ def run_grid(config, workdir: str) -> None:
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
   go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt).
+  The grid holds its workdir for the whole grid, and each run its own (rundir.hold_workdir).
   """
   config_check.check(config)
   runs = list(grid_configs(config, workdir))
   check_workdir(config, workdir)
   for _, _, sub, sub_dir in runs:
     check_workdir(sub, sub_dir)
-  rundir.save_config(config, workdir)
-  lanes = int(config.grid.get("lanes", 1))
-  if lanes > 1:
-    _run_lanes(config, runs, lanes)
-  else:
-    for task, encoder, sub, sub_dir in runs:
-      print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
-      try:
-        run(sub, sub_dir)
-      except UserError as e:
-        _finish_run(config, task, encoder, sub, sub_dir, str(e))
-        continue
-      _finish_run(config, task, encoder, sub, sub_dir, None)
-  if "report" in config.stages:
-    importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+  with rundir.hold_workdir(workdir):
+    rundir.save_config(config, workdir)
+    lanes = int(config.grid.get("lanes", 1))
+    if lanes > 1:
+      _run_lanes(config, runs, lanes)
+    else:
+      for task, encoder, sub, sub_dir in runs:
+        print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
+        try:
+          run(sub, sub_dir)
+        except UserError as e:
+          _finish_run(config, task, encoder, sub, sub_dir, str(e))
+          continue
+        _finish_run(config, task, encoder, sub, sub_dir, None)
+    if "report" in config.stages:
+      importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
 
 
 def _run_lanes(config, runs, lanes: int) -> None:
@@ -205,19 +207,21 @@ def run(config, workdir: str) -> None:
   """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`).
 
   Before any stage runs and before config.json is written, the whole config is checked (roboshape.config_check)
-  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was.
+  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was. The run holds
+  the workdir (rundir.hold_workdir) from then to its end, so a second run on it stops in one line.
   """
   if "grid" in config:
     run_grid(config, workdir)
     return
   config_check.check(config)
   check_workdir(config, workdir)
-  rundir.save_config(config, workdir)
-  for name in config.stages:
-    runner = stage_runner(name, config)
-    print(f"[roboshape] stage {name} -> {workdir}", flush=True)
-    start = time.time()
-    rundir.record_stage(workdir, name, "running")
-    runner(workdir)
-    rundir.record_stage(workdir, name, "done", time.time() - start)
-    print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)
+  with rundir.hold_workdir(workdir):
+    rundir.save_config(config, workdir)
+    for name in config.stages:
+      runner = stage_runner(name, config)
+      print(f"[roboshape] stage {name} -> {workdir}", flush=True)
+      start = time.time()
+      rundir.record_stage(workdir, name, "running")
+      runner(workdir)
+      rundir.record_stage(workdir, name, "done", time.time() - start)
+      print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)
