@@ -60,8 +60,17 @@ def load_config(workdir: str):
   path = config_path(workdir)
   if not os.path.exists(path):
     raise UserError(f"{path} not found: is {workdir!r} the workdir of a `python launch.py` run?")
-  with open(path) as f:
-    return ml_collections.ConfigDict(json.load(f))
+  try:
+    with open(path, encoding="utf-8") as f:
+      data = json.load(f)
+  except (OSError, ValueError) as e:        # unreadable, not UTF-8, not JSON
+    raise UserError(f"{path} is damaged ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}): it is "
+                    "the record of the config that ran; restore it (e.g. from a copy or the results it was "
+                    "published with) rather than deleting the run.") from None
+  if not isinstance(data, dict):
+    raise UserError(f"{path} is damaged (a JSON {type(data).__name__}, not a config): restore it rather than "
+                    "deleting the run.")
+  return ml_collections.ConfigDict(data)
 
 
 def data_root(config, workdir: str) -> str:
@@ -169,19 +178,26 @@ def stage_log_path(workdir: str) -> str:
   return os.path.join(workdir, STAGE_LOG)
 
 
-def read_stage_log(workdir: str) -> dict:
+def read_stage_log(workdir: str, strict: bool = False) -> dict:
   """{stage: {state: "running" | "done", pid, started, finished, seconds}} of a run ({} when none ran yet).
 
-  `seconds` is the wall time of the stage's finished attempts, summed over resumes."""
+  `seconds` is the wall time of the stage's finished attempts, summed over resumes. A damaged log reads as {} (a
+  run starts it afresh: it records times, not results), or with `strict` (the tools that report it) is a UserError
+  naming the file."""
   path = stage_log_path(workdir)
   if not os.path.exists(path):
     return {}
   try:
-    with open(path) as f:
+    with open(path, encoding="utf-8") as f:
       log = json.load(f)
-  except (OSError, ValueError):
-    return {}
-  return log if isinstance(log, dict) else {}
+  except (OSError, ValueError) as e:
+    log = e
+  if isinstance(log, dict):
+    return log
+  if strict:
+    raise UserError(f"{path} is damaged (not a JSON object of stages): the stage times it held are lost, the "
+                    "run's results are not; the next `python launch.py` on this workdir starts it again.")
+  return {}
 
 
 def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> None:
