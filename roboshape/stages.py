@@ -33,18 +33,19 @@ STAGE_MODULES = {
 _RUN_FIELDS = ("task", "encoder", "variant")
 
 
-def _check_writable(workdir: str) -> None:
-  """Raises UserError unless `workdir` is a directory this process can write in, or can be created as one."""
+def _check_writable(workdir: str, flag: str = "--workdir") -> None:
+  """Raises UserError unless `workdir` is a directory this process can write in, or can be created as one (a
+  read-only file system fails here too: access(2) says EROFS to root as well). `flag` names the path's option."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
-    raise UserError(f"--workdir {workdir} is a file, not a directory; give a directory (it is created if missing).")
+    raise UserError(f"{flag} {workdir} is a file, not a directory; give a directory (it is created if missing).")
   existing = os.path.abspath(workdir)
   while not os.path.exists(existing):
     existing = os.path.dirname(existing)
   if not os.path.isdir(existing):
-    raise UserError(f"--workdir {workdir}: {existing} is a file, not a directory; give a path under a directory.")
+    raise UserError(f"{flag} {workdir}: {existing} is a file, not a directory; give a path under a directory.")
   if not os.access(existing, os.W_OK | os.X_OK):
-    raise UserError(f"--workdir {workdir} is not writable ({existing}: permission denied); give a directory you "
-                    "can write to.")
+    raise UserError(f"{flag} {workdir} is not writable ({existing}: permission denied or a read-only file system); "
+                    "give a directory you can write to.")
 
 
 def _run_identity(config) -> dict:
@@ -79,6 +80,8 @@ def check_workdir(config, workdir: str) -> None:
   """Raises UserError, before anything is written, unless `workdir` can hold the run of `config`: a directory
   (or a path where one can be made) this process can write in, without the config.json of another run."""
   _check_writable(workdir)
+  if "collect" in config.get("stages", ()) and config.get("data", {}).get("dir"):
+    _check_writable(config.data.dir, "--config.data.dir")
   _check_same_run(config, workdir)
   _check_dataset(config, workdir)
 

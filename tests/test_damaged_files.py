@@ -67,3 +67,19 @@ def test_a_missing_checkpoints_hint_names_the_runs_variant(tmp_path):
   with pytest.raises(UserError, match=r"run the pretrain stage first \(python launch.py "
                      rf"--config=configs/push_savi.py:tiny --workdir={workdir}\)"):
     roboshape.load_encoder(workdir)
+
+
+def test_a_data_dir_the_run_cannot_write_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  data = tmp_path / "readonly_data"
+  data.mkdir()
+  real_access = os.access
+  monkeypatch.setattr(os, "access", lambda path, mode: False if str(path) == str(data) else real_access(path, mode))
+  config = common.get_config("push", "state", "tiny")
+  config.data.dir = str(data)
+  workdir = tmp_path / "run"
+  with pytest.raises(UserError, match=r"--config.data.dir .* is not writable .*read-only file system"):
+    stages.run(config, str(workdir))
+  assert not workdir.exists() and not os.listdir(data)
+  config.stages = ("train_policy",)        # a run that does not collect only reads the dataset: no such check
+  stages.check_workdir(config, str(workdir))
