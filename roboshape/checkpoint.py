@@ -245,7 +245,10 @@ class Checkpointer:
 
 def restore_params(directory: str, like: Any, missing: str) -> Tuple[Any, int]:
   """(params, step) of the newest checkpoint in `directory` whose params restore into `like` (a damaged newer one
-  is skipped with a one-line warning); UserError(`missing`) when there is no checkpoint. Builds no optimizer."""
+  is skipped with a one-line warning); UserError(`missing`) when there is no checkpoint. Builds no optimizer, and
+  creates nothing where there is no checkpoint folder (a loader only reads)."""
+  if not os.path.isdir(directory):
+    raise UserError(missing)
   ckpt = Checkpointer(directory)
   try:
     if ckpt.latest_step() is None:

@@ -67,6 +67,7 @@ def test_a_missing_checkpoints_hint_names_the_runs_variant(tmp_path):
   with pytest.raises(UserError, match=r"run the pretrain stage first \(python launch.py "
                      rf"--config=configs/push_savi.py:tiny --workdir={workdir}\)"):
     roboshape.load_encoder(workdir)
+  assert sorted(os.listdir(workdir)) == ["config.json"]             # a loader creates no empty checkpoint folder
 
 
 def test_a_data_dir_the_run_cannot_write_is_refused_before_anything_is_written(tmp_path, monkeypatch):
