@@ -10,10 +10,20 @@ resumes from, and "params", the train state's "params" saved again on their own,
 building an optimizer. A checkpoint written before the "params" item existed (one item, orbax's "default") still
 restores: its params are read out of the whole state, restored as saved.
 
+Checkpoints travel between device counts: a step saved by a run over several devices (launch.py makes each CPU core
+one, a GPU machine has its GPUs) restores in a process with any other devices. Orbax records each array's sharding
+(the saving process's mesh) and, given no sharding to restore onto, tries to rebuild it, which fails on other
+devices ("Topology mismatch"). So every restore here names the sharding: that of the target's leaves where they have
+one (a train state the caller already placed on its mesh), else this process's first device; the caller places
+the result where it wants it (the train loops put the state on their own mesh).
+
 A damaged checkpoint (a truncated or corrupted file) does not stop a run: `restore_latest` and `resume` warn in one
 line and fall back to the next older step that restores; `resume` also moves the damaged steps aside (to
-damaged_step_<N>, which orbax ignores) so that training can write those steps again. When no step restores, the
-error is one line that says what to do.
+damaged_step_<N>, which orbax ignores) so that training can write those steps again. A step is damaged only when it
+does not restore even as saved (the shapes and dtypes its own metadata records, onto this process's devices). A step
+that restores as saved but not into the caller's structure (another config's model, shapes or optimizer) is intact:
+that is a one-line UserError naming the safe action (the config that wrote it), with no fallback to an older step
+and nothing moved. When no step restores and every one is damaged, the error is one line that says what to do.
 """
 import contextlib
 import gc
@@ -22,7 +32,7 @@ import logging
 import os
 import sys
 import time
-from typing import Any, Iterator, List, Optional, Tuple
+from typing import Any, Iterator, List, NamedTuple, Optional, Tuple
 
 import jax
 import orbax.checkpoint as ocp
@@ -34,12 +44,13 @@ STATE, PARAMS, LEGACY = "state", "params", "default"     # the items of a step (
 
 
 class Checkpointer:
-  """A thin wrapper over `ocp.CheckpointManager` with the StandardSave/StandardRestore handlers."""
+  """A thin wrapper over `ocp.CheckpointManager` with the StandardSave/StandardRestore handlers (named up front, so
+  a step's metadata, what restoring it as saved needs, can be read before anything was restored)."""
 
   def __init__(self, directory: str, keep: int = 3):
     self.directory = os.path.abspath(directory)
     self._manager = ocp.CheckpointManager(
-        self.directory, item_names=(STATE, PARAMS, LEGACY),
+        self.directory, item_handlers={name: ocp.StandardCheckpointHandler() for name in (STATE, PARAMS, LEGACY)},
         options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
 
   def latest_step(self) -> Optional[int]:
@@ -57,28 +68,21 @@ class Checkpointer:
     self._manager.save(step, args=ocp.args.Composite(**items), force=True)
 
   def restore(self, like: Any, step: Optional[int] = None) -> Any:
-    """Restores the checkpoint at `step` into the structure, shapes and dtypes of `like`.
+    """Restores the checkpoint at `step` into the structure, shapes and dtypes of `like`, on `like`'s shardings
+    where its leaves have one (else on this process's first device), whatever devices saved it.
 
     step None: the latest step that restores (see `restore_latest`). A given step that does not restore is a
     one-line UserError.
     """
     if step is None:
       return self.restore_latest(like)[0]
-    state, failure = self._try_restore(step, like)
-    if failure:
-      raise UserError(f"checkpoint step {step} in {self.directory} does not restore ({failure}); "
-                      f"load another step (saved: {self.all_steps()}).")
-    return state
+    return self._given_step(step, like, STATE)
 
   def restore_params(self, like: Any, step: Optional[int] = None) -> Any:
     """The params of the checkpoint at `step` (None: the latest that restores), as `restore` for the state."""
     if step is None:
       return self.restore_params_latest(like)[0]
-    params, failure = self._try_restore(step, like, PARAMS)
-    if failure:
-      raise UserError(f"checkpoint step {step} in {self.directory} does not restore ({failure}); "
-                      f"load another step (saved: {self.all_steps()}).")
-    return params
+    return self._given_step(step, like, PARAMS)
 
   def restore_params_latest(self, like: Any) -> Tuple[Any, int]:
     """(params, step) of the newest checkpoint whose params restore into `like`'s structure; as `restore_latest`
@@ -88,11 +92,21 @@ class Checkpointer:
   def restore_latest(self, like: Any, set_aside: bool = False) -> Tuple[Any, int]:
     """(state, step) of the newest checkpoint that restores into `like`'s structure.
 
-    A newer step that fails to restore is reported in one warning line and skipped; with `set_aside` it is also
-    moved to <directory>/damaged_step_<N> once an older step has restored. Raises FileNotFoundError when there is
-    no checkpoint and UserError when none restores (nothing is moved then).
+    A newer step that is damaged (`_try_restore`) is reported in one warning line and skipped; with `set_aside`
+    it is also moved to <directory>/damaged_step_<N> once an older step has restored. Raises FileNotFoundError
+    when there is no checkpoint, and UserError when a step is intact but does not restore into `like` (nothing
+    is skipped or moved then: an older step would not fit either) or when every step is damaged (nothing moved).
     """
     return self._newest(like, set_aside, STATE)
+
+  def _given_step(self, step: int, like: Any, item: str) -> Any:
+    value, failure = self._try_restore(step, like, item)
+    if failure is None:
+      return value
+    if not failure.damaged:
+      raise UserError(self._intact_message(step, failure.reason))
+    raise UserError(f"checkpoint step {step} in {self.directory} does not restore ({failure.reason}); "
+                    f"load another step (saved: {self.all_steps()}).")
 
   def _newest(self, like: Any, set_aside: bool, item: str) -> Tuple[Any, int]:
     steps = self.all_steps()[::-1]
@@ -101,19 +115,29 @@ class Checkpointer:
     failed = []
     for i, step in enumerate(steps):
       state, failure = self._try_restore(step, like, item)
+      if failure and not failure.damaged:
+        raise UserError(self._intact_message(step, failure.reason))
       if failure:
-        failed.append((step, failure))
+        failed.append((step, failure.reason))
         if i + 1 < len(steps):
-          _warn(f"[roboshape] checkpoint step {step} in {self.directory} does not restore ({failure}); "
+          _warn(f"[roboshape] checkpoint step {step} in {self.directory} does not restore ({failure.reason}); "
                 f"falling back to step {steps[i + 1]}")
         continue
       if set_aside and failed:
         self._set_aside([s for s, _ in failed])
       return state, step
     step, reason = failed[0]
-    raise UserError(f"no checkpoint in {self.directory} restores (step {step}: {reason}): if the config changed "
-                    f"since they were written, run with the workdir's config.json; otherwise move {self.directory} "
-                    "away to start this training over.")
+    raise UserError(f"no checkpoint in {self.directory} restores (step {step}: {reason}), and none reads even as "
+                    f"saved, so every one is damaged: copy {self.directory} back from a backup if you have one; "
+                    f"otherwise move it away (nothing here was moved) to start this training over.")
+
+  def _intact_message(self, step: int, reason: str) -> str:
+    """The one-line error for a step that restores as saved but not into the caller's structure: the safe action
+    (the config that wrote it) first; nothing suggests moving an intact checkpoint away."""
+    return (f"run with the config these checkpoints were trained with (the workdir's config.json, without "
+            f"--config overrides that change the model or its optimizer): checkpoint step {step} in "
+            f"{self.directory} is intact but does not restore into this config's structure ({reason}); "
+            "nothing was moved or changed.")
 
   def resume(self, state: Any) -> Tuple[Any, int]:
     """(state, step) to go on training from: the newest checkpoint that restores into `state`'s structure, with
@@ -127,7 +151,8 @@ class Checkpointer:
     return self.resume(state)[0]
 
   def restores(self, step: int) -> bool:
-    """Whether checkpoint `step` restores (as saved, without a target structure)."""
+    """Whether checkpoint `step` restores as saved (its own shapes and dtypes, onto this process's devices): whether
+    it is undamaged."""
     return self._try_restore(step, None)[1] is None
 
   def wait(self) -> None:
@@ -158,28 +183,52 @@ class Checkpointer:
     finally:
       logging.disable(level)
 
-  def _try_restore(self, step: int, like: Any, item: str = STATE) -> Tuple[Any, Optional[str]]:
-    """(the `item` of checkpoint `step`, None) when it restores into `like`'s structure (None: as saved), else
-    (None, why). A legacy checkpoint (one "default" item, the whole state) gives its params restored as saved,
-    checked against `like`'s shapes."""
-    abstract = None if like is None else jax.tree.map(ocp.utils.to_shape_dtype_struct, like)
+  def _try_restore(self, step: int, like: Any, item: str = STATE) -> Tuple[Any, Optional["_Failure"]]:
+    """(the `item` of checkpoint `step`, None) when it restores into `like`'s structure, else (None, why).
+
+    `like`: the target (arrays or ShapeDtypeStructs), restored onto its leaves' shardings where they have one, else
+    onto this process's first device; None restores the step as saved (`_read`). A legacy checkpoint (one
+    "default" item, the whole state) gives its params restored as saved, checked against `like`'s shapes.
+    A failure is damage only when the item does not restore as saved either; a step that does is intact and its
+    failure a mismatch with `like` (another config's structure or shapes), which `_Failure.damaged` tells apart.
+    """
     legacy = os.path.isdir(os.path.join(self.directory, str(step), LEGACY))
+    stored = LEGACY if legacy else item
+    as_saved = like is None or (legacy and item == PARAMS)
     _drop_stragglers()
     with _quiet() as sink:
       try:
-        if not legacy:
-          return self._manager.restore(step, args=ocp.args.Composite(
-              **{item: ocp.args.StandardRestore(abstract)}))[item], None
-        if item == STATE:
-          return self._manager.restore(step, args=ocp.args.Composite(
-              **{LEGACY: ocp.args.StandardRestore(abstract)}))[LEGACY], None
-        params = self._manager.restore(step, args=ocp.args.Composite(
-            **{LEGACY: ocp.args.StandardRestore(None)}))[LEGACY][PARAMS]
-        return params, _mismatch(params, abstract)
+        value = self._read(step, stored, None if as_saved else jax.tree.map(_target, like))
+        if not (legacy and item == PARAMS):
+          return value, None
+        mismatch = _mismatch(value[PARAMS], like)
+        return (None, _Failure(mismatch, False)) if mismatch else (value[PARAMS], None)
       except Exception as e:  # pylint: disable=broad-except
-        failure = _reason(e)
+        reason = _reason(e)
       _settle(sink)
-    return None, failure
+      damaged = as_saved or not self._reads_as_saved(step, stored)
+      if damaged and not as_saved:
+        _settle(sink)
+    return None, _Failure(reason, damaged)
+
+  def _reads_as_saved(self, step: int, stored: str) -> bool:
+    try:
+      self._read(step, stored, None)
+      return True
+    except Exception:  # pylint: disable=broad-except
+      return False
+
+  def _read(self, step: int, stored: str, abstract: Any) -> Any:
+    """The item `stored` of checkpoint `step` restored into `abstract` (ShapeDtypeStructs with shardings); None:
+    as saved, the shapes and dtypes of the step's own metadata on this process's first device (not the saving
+    process's devices, which this one may not have)."""
+    if abstract is None:
+      metadata = self._manager.item_metadata(step)[stored]
+      if metadata is None:
+        raise FileNotFoundError(f"checkpoint step {step} has no readable {stored!r} item")
+      abstract = jax.tree.map(_as_saved, getattr(metadata, "tree", metadata))
+    return self._manager.restore(step, args=ocp.args.Composite(
+        **{stored: ocp.args.StandardRestore(abstract)}))[stored]
 
   def _set_aside(self, steps: List[int]) -> None:
     """Moves damaged steps to <directory>/damaged_step_<N> (kept for inspection, ignored by orbax)."""
@@ -196,7 +245,10 @@ class Checkpointer:
 
 def restore_params(directory: str, like: Any, missing: str) -> Tuple[Any, int]:
   """(params, step) of the newest checkpoint in `directory` whose params restore into `like` (a damaged newer one
-  is skipped with a one-line warning); UserError(`missing`) when there is no checkpoint. Builds no optimizer."""
+  is skipped with a one-line warning); UserError(`missing`) when there is no checkpoint. Builds no optimizer, and
+  creates nothing where there is no checkpoint folder (a loader only reads)."""
+  if not os.path.isdir(directory):
+    raise UserError(missing)
   ckpt = Checkpointer(directory)
   try:
     if ckpt.latest_step() is None:
@@ -264,6 +316,33 @@ def _drop_stragglers() -> None:
 
   sys.unraisablehook = hook
   logging.getLogger("asyncio").addFilter(_AbandonedReadFilter())
+
+
+class _Failure(NamedTuple):
+  """Why a checkpoint step did not restore, and whether it is damaged (does not restore even as saved)."""
+  reason: str
+  damaged: bool
+
+
+def _one_device() -> jax.sharding.Sharding:
+  return jax.sharding.SingleDeviceSharding(jax.devices()[0])
+
+
+def _target(leaf: Any) -> Any:
+  """A leaf of a restore target: its shape and dtype, on its own sharding (an array placed by this process, a
+  ShapeDtypeStruct that names one) or else on this process's first device, never on the saved one."""
+  target = ocp.utils.to_shape_dtype_struct(leaf)
+  if isinstance(target, jax.ShapeDtypeStruct) and target.sharding is None:
+    return jax.ShapeDtypeStruct(target.shape, target.dtype, sharding=_one_device())
+  return target
+
+
+def _as_saved(leaf: Any) -> Any:
+  """A leaf of a step's metadata as a restore target on this process's first device (arrays; other leaves as
+  they are)."""
+  if hasattr(leaf, "shape") and hasattr(leaf, "dtype"):
+    return jax.ShapeDtypeStruct(tuple(leaf.shape), leaf.dtype, sharding=_one_device())
+  return leaf
 
 
 def _mismatch(tree: Any, like: Any) -> Optional[str]:

@@ -31,7 +31,8 @@ class Terminated(KeyboardInterrupt):
   cleans up after the other)."""
 
 
-def _exit_code(e: KeyboardInterrupt) -> int:
+def interrupt_code(e: KeyboardInterrupt) -> int:
+  """The exit status of a run that `e` interrupted: 143 for SIGTERM, 130 for Ctrl-C."""
   return 128 + (signal.SIGTERM if isinstance(e, Terminated) else signal.SIGINT)
 
 
@@ -46,7 +47,7 @@ def _on_signal(signum, frame) -> None:
   raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
-def _install_signal_handlers():
+def install_signal_handlers():
   """Routes SIGINT and SIGTERM to `_on_signal` (main thread only); returns the previous handlers."""
   if threading.current_thread() is not threading.main_thread():
     return {}
@@ -159,7 +160,7 @@ def run_app(main: Callable[[Sequence[str]], None], argv: Sequence[str]) -> int:
     return _fail(str(e))
   if flags.FLAGS["config"].present == 0 and "config" in flags.FLAGS and flags.FLAGS["config"].value is None:
     return _fail("--config is required, e.g. --config=configs/pick_savi.py:tiny")
-  previous = _install_signal_handlers()
+  previous = install_signal_handlers()
   try:
     app.run(main, argv=[argv[0]] + [a for a in argv[1:] if not a.startswith("-")], flags_parser=lambda a: a)
   except UserError as e:
@@ -167,7 +168,7 @@ def run_app(main: Callable[[Sequence[str]], None], argv: Sequence[str]) -> int:
   except KeyboardInterrupt as e:
     _quiet_after_interrupt()
     print(f"roboshape: {INTERRUPTED}", file=sys.stderr, flush=True)
-    return _exit_code(e)
+    return interrupt_code(e)
   except SystemExit as e:
     return 0 if e.code is None else (e.code if isinstance(e.code, int) else 1)
   finally:

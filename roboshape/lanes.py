@@ -12,8 +12,11 @@ Each job is a child `python -m roboshape.lanes RUN_DIR`, which reads its config 
 `roboshape.stages.run(config, RUN_DIR)`, so it resumes and fails exactly as `launch.py` would; everything it prints
 goes to RUN_DIR/log.txt (appended across resumes). Lane i owns the cores cores[i::lanes] of this process's affinity,
 and a job's simulator workers inherit them. Ctrl-C or SIGTERM interrupts every child (each stops the way an
-interrupted run stops and resumes the same way) and re-raises here.
+interrupted run stops and resumes the same way) and re-raises here; a parent that dies any other way (SIGKILL)
+takes its children with it (`child_setup`). Each child holds its run's workdir (rundir.hold_workdir), so a second
+grid on the same runs stops in one line instead of running them twice.
 """
+import ctypes
 import os
 import pickle
 import signal
@@ -26,6 +29,7 @@ from roboshape import fileio
 from roboshape.errors import UserError
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_PR_SET_PDEATHSIG = 1   # linux/prctl.h
 LOG_FILE = "log.txt"
 Job = Tuple[str, object, str]     # (name, config, run_dir)
 
@@ -46,6 +50,19 @@ def last_line(path: str) -> str:
   return lines[-1].strip() if lines else ""
 
 
+def child_setup(cores: Set[int], parent: int) -> None:
+  """Runs in a lane's child before it starts (Popen's preexec_fn): pins it to `cores`, and asks Linux to send it
+  SIGTERM when the process that started it exits (prctl PR_SET_PDEATHSIG), so a lane never outlives its grid: a
+  parent killed even by SIGKILL takes its lanes with it, each stopping as an interrupted run stops. A child whose
+  parent is already gone (it died before the prctl) exits at once."""
+  os.sched_setaffinity(0, cores)
+  libc = ctypes.CDLL(None, use_errno=True)
+  if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+    raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+  if os.getppid() != parent:
+    os._exit(128 + signal.SIGTERM)  # pylint: disable=protected-access
+
+
 def _start(job: Job, cores: Set[int]) -> subprocess.Popen:
   _, config, run_dir = job
   os.makedirs(run_dir, exist_ok=True)
@@ -54,7 +71,7 @@ def _start(job: Job, cores: Set[int]) -> subprocess.Popen:
   with open(os.path.join(run_dir, LOG_FILE), "ab") as log:
     child = subprocess.Popen([sys.executable, "-m", "roboshape.lanes", run_dir], stdin=subprocess.PIPE,
                              stdout=log, stderr=subprocess.STDOUT, env=env,
-                             preexec_fn=lambda: os.sched_setaffinity(0, cores))
+                             preexec_fn=lambda parent=os.getpid(): child_setup(cores, parent))
   child.stdin.write(pickle.dumps(config))
   child.stdin.close()
   return child
@@ -116,13 +133,15 @@ def main(argv) -> int:
   except UserError as e:
     print(f"roboshape: error: {e}", file=sys.stderr, flush=True)
     return 2
-  except KeyboardInterrupt:
+  except KeyboardInterrupt as e:
+    from roboshape import cli  # pylint: disable=import-outside-toplevel
     print("roboshape: interrupted; run the same command to resume", file=sys.stderr, flush=True)
-    return 128 + signal.SIGINT
+    return cli.interrupt_code(e)
   return 0
 
 
 if __name__ == "__main__":
   from roboshape import cli  # pylint: disable=ungrouped-imports
   cli.host_device_per_core(override=True)   # this lane's cores, not the parent's count it inherited
-  sys.exit(main(sys.argv))
+  cli.install_signal_handlers()             # SIGTERM (its parent's death, or a kill) stops it as Ctrl-C would
+  cli.exit_process(main(sys.argv))

@@ -21,6 +21,8 @@ instead, each as savi/ above, and the choice among them:
   <savi_dir>/seeds_<metric>.png  every seed's validation curve of the selection metric       (`seeds_figure`)
 With seeds = () (the default) there is one run, with config.seed, in savi/ itself, as above.
 """
+import contextlib
+import fcntl
 import json
 import os
 
@@ -33,6 +35,7 @@ SKIPPED_FILE = "SKIPPED.json"      # a grid run skipped for bad input: {"reason"
 CHECKPOINTS = "checkpoints"
 RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and the per-level summary
 RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run's): one row per rollout
+RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run working in the workdir (`hold_workdir`)
 SELECTION_FILE = "selected.json"   # <savi_dir>/selected.json: the seed of savi.train.seeds that pretraining selected
 
 
@@ -57,8 +60,17 @@ def load_config(workdir: str):
   path = config_path(workdir)
   if not os.path.exists(path):
     raise UserError(f"{path} not found: is {workdir!r} the workdir of a `python launch.py` run?")
-  with open(path) as f:
-    return ml_collections.ConfigDict(json.load(f))
+  try:
+    with open(path, encoding="utf-8") as f:
+      data = json.load(f)
+  except (OSError, ValueError) as e:        # unreadable, not UTF-8, not JSON
+    raise UserError(f"{path} is damaged ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}): it is "
+                    "the record of the config that ran; restore it (e.g. from a copy or the results it was "
+                    "published with) rather than deleting the run.") from None
+  if not isinstance(data, dict):
+    raise UserError(f"{path} is damaged (a JSON {type(data).__name__}, not a config): restore it rather than "
+                    "deleting the run.")
+  return ml_collections.ConfigDict(data)
 
 
 def data_root(config, workdir: str) -> str:
@@ -166,19 +178,26 @@ def stage_log_path(workdir: str) -> str:
   return os.path.join(workdir, STAGE_LOG)
 
 
-def read_stage_log(workdir: str) -> dict:
+def read_stage_log(workdir: str, strict: bool = False) -> dict:
   """{stage: {state: "running" | "done", pid, started, finished, seconds}} of a run ({} when none ran yet).
 
-  `seconds` is the wall time of the stage's finished attempts, summed over resumes."""
+  `seconds` is the wall time of the stage's finished attempts, summed over resumes. A damaged log reads as {} (a
+  run starts it afresh: it records times, not results), or with `strict` (the tools that report it) is a UserError
+  naming the file."""
   path = stage_log_path(workdir)
   if not os.path.exists(path):
     return {}
   try:
-    with open(path) as f:
+    with open(path, encoding="utf-8") as f:
       log = json.load(f)
-  except (OSError, ValueError):
-    return {}
-  return log if isinstance(log, dict) else {}
+  except (OSError, ValueError) as e:
+    log = e
+  if isinstance(log, dict):
+    return log
+  if strict:
+    raise UserError(f"{path} is damaged (not a JSON object of stages): the stage times it held are lost, the "
+                    "run's results are not; the next `python launch.py` on this workdir starts it again.")
+  return {}
 
 
 def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> None:
@@ -195,3 +214,32 @@ def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> 
   log[stage] = entry
   os.makedirs(workdir, exist_ok=True)
   fileio.atomic_write_json(stage_log_path(workdir), log)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# One run per workdir.
+
+@contextlib.contextmanager
+def hold_workdir(workdir: str):
+  """Holds <workdir>/.run.lock for the body: an exclusive flock, which the operating system releases when the
+  holder dies however it dies (a killed run never blocks the next one). The file holds the holder's pid. A second
+  run on a held workdir gets a UserError naming that pid, before it writes anything else: two runs on one workdir
+  would train, evaluate and log into the same files."""
+  os.makedirs(workdir, exist_ok=True)
+  path = os.path.join(workdir, RUN_LOCK)
+  with open(path, "a+") as f:
+    try:
+      fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      f.seek(0)
+      holder = f.read().strip() or "unknown"
+      raise UserError(f"{workdir} is in use by another run (pid {holder}): wait for it to end, or stop that run "
+                      "first; two runs on one workdir would write the same files.") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    try:
+      yield
+    finally:
+      fcntl.flock(f.fileno(), fcntl.LOCK_UN)

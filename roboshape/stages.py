@@ -33,18 +33,19 @@ STAGE_MODULES = {
 _RUN_FIELDS = ("task", "encoder", "variant")
 
 
-def _check_writable(workdir: str) -> None:
-  """Raises UserError unless `workdir` is a directory this process can write in, or can be created as one."""
+def _check_writable(workdir: str, flag: str = "--workdir") -> None:
+  """Raises UserError unless `workdir` is a directory this process can write in, or can be created as one (a
+  read-only file system fails here too: access(2) says EROFS to root as well). `flag` names the path's option."""
   if os.path.exists(workdir) and not os.path.isdir(workdir):
-    raise UserError(f"--workdir {workdir} is a file, not a directory; give a directory (it is created if missing).")
+    raise UserError(f"{flag} {workdir} is a file, not a directory; give a directory (it is created if missing).")
   existing = os.path.abspath(workdir)
   while not os.path.exists(existing):
     existing = os.path.dirname(existing)
   if not os.path.isdir(existing):
-    raise UserError(f"--workdir {workdir}: {existing} is a file, not a directory; give a path under a directory.")
+    raise UserError(f"{flag} {workdir}: {existing} is a file, not a directory; give a path under a directory.")
   if not os.access(existing, os.W_OK | os.X_OK):
-    raise UserError(f"--workdir {workdir} is not writable ({existing}: permission denied); give a directory you "
-                    "can write to.")
+    raise UserError(f"{flag} {workdir} is not writable ({existing}: permission denied or a read-only file system); "
+                    "give a directory you can write to.")
 
 
 def _run_identity(config) -> dict:
@@ -79,6 +80,8 @@ def check_workdir(config, workdir: str) -> None:
   """Raises UserError, before anything is written, unless `workdir` can hold the run of `config`: a directory
   (or a path where one can be made) this process can write in, without the config.json of another run."""
   _check_writable(workdir)
+  if "collect" in config.get("stages", ()) and config.get("data", {}).get("dir"):
+    _check_writable(config.data.dir, "--config.data.dir")
   _check_same_run(config, workdir)
   _check_dataset(config, workdir)
 
@@ -102,27 +105,29 @@ def run_grid(config, workdir: str) -> None:
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
   go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt).
+  The grid holds its workdir for the whole grid, and each run its own (rundir.hold_workdir).
   """
   config_check.check(config)
   runs = list(grid_configs(config, workdir))
   check_workdir(config, workdir)
   for _, _, sub, sub_dir in runs:
     check_workdir(sub, sub_dir)
-  rundir.save_config(config, workdir)
-  lanes = int(config.grid.get("lanes", 1))
-  if lanes > 1:
-    _run_lanes(config, runs, lanes)
-  else:
-    for task, encoder, sub, sub_dir in runs:
-      print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
-      try:
-        run(sub, sub_dir)
-      except UserError as e:
-        _finish_run(config, task, encoder, sub, sub_dir, str(e))
-        continue
-      _finish_run(config, task, encoder, sub, sub_dir, None)
-  if "report" in config.stages:
-    importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+  with rundir.hold_workdir(workdir):
+    rundir.save_config(config, workdir)
+    lanes = int(config.grid.get("lanes", 1))
+    if lanes > 1:
+      _run_lanes(config, runs, lanes)
+    else:
+      for task, encoder, sub, sub_dir in runs:
+        print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
+        try:
+          run(sub, sub_dir)
+        except UserError as e:
+          _finish_run(config, task, encoder, sub, sub_dir, str(e))
+          continue
+        _finish_run(config, task, encoder, sub, sub_dir, None)
+    if "report" in config.stages:
+      importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
 
 
 def _run_lanes(config, runs, lanes: int) -> None:
@@ -205,19 +210,21 @@ def run(config, workdir: str) -> None:
   """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`).
 
   Before any stage runs and before config.json is written, the whole config is checked (roboshape.config_check)
-  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was.
+  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was. The run holds
+  the workdir (rundir.hold_workdir) from then to its end, so a second run on it stops in one line.
   """
   if "grid" in config:
     run_grid(config, workdir)
     return
   config_check.check(config)
   check_workdir(config, workdir)
-  rundir.save_config(config, workdir)
-  for name in config.stages:
-    runner = stage_runner(name, config)
-    print(f"[roboshape] stage {name} -> {workdir}", flush=True)
-    start = time.time()
-    rundir.record_stage(workdir, name, "running")
-    runner(workdir)
-    rundir.record_stage(workdir, name, "done", time.time() - start)
-    print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)
+  with rundir.hold_workdir(workdir):
+    rundir.save_config(config, workdir)
+    for name in config.stages:
+      runner = stage_runner(name, config)
+      print(f"[roboshape] stage {name} -> {workdir}", flush=True)
+      start = time.time()
+      rundir.record_stage(workdir, name, "running")
+      runner(workdir)
+      rundir.record_stage(workdir, name, "done", time.time() - start)
+      print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)

@@ -28,7 +28,7 @@ def run_status(stages, run_dir: str) -> Dict:
   """{state, stages: {stage: seconds or state}, seconds} of one run whose config runs `stages`."""
   if os.path.exists(os.path.join(run_dir, rundir.SKIPPED_FILE)):
     return dict(state="skipped", stages={}, seconds=0.0)
-  log = rundir.read_stage_log(run_dir)
+  log = rundir.read_stage_log(run_dir, strict=True)
   per_stage, states = {}, []
   for stage in stages:
     entry = log.get(stage, {})

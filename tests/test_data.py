@@ -417,3 +417,24 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   # The camera looks down at the table: the backdrop behind it is farther, the cube on it nearer than its far edge.
   assert np.median(depth[seg == 0]) > np.median(depth[seg == 1]) > 0
   assert depth[seg == 3].max() < depth[seg == 1].max() and 100 < depth.min() and depth.max() < 5000
+
+
+def test_a_tfds_dataset_roboshape_did_not_write_is_refused_and_left_as_it_is(reference, tmp_path):
+  config, path, _ = reference
+  foreign = str(tmp_path / "data" / "roboshape_push" / "1.0.0")
+  shutil.copytree(path, foreign)
+  os.remove(os.path.join(foreign, "roboshape.json"))        # TFDS metadata and records, but no roboshape.json
+  before = {f: open(os.path.join(foreign, f), "rb").read() for f in os.listdir(foreign) if f != ".collect.lock"}
+  with pytest.raises(UserError, match=r"holds a TFDS dataset that roboshape did not write .* left as it is") as e:
+    _collect(config, foreign)
+  assert "\n" not in str(e.value)
+  after = {f: open(os.path.join(foreign, f), "rb").read() for f in os.listdir(foreign) if f != ".collect.lock"}
+  assert after == before
+
+
+def test_a_new_dataset_records_itself_before_any_tfds_metadata(tmp_path):
+  config = _config(train=6)
+  path = str(tmp_path / "roboshape_push" / "1.0.0")
+  rlds.DatasetWriter(path, collect.config_summary(config), collect.split_targets(config))
+  assert os.listdir(path) == ["roboshape.json"] and not _state(path)["complete"]
+  assert _collect(config, path)["complete"]                 # and a collection goes on from there

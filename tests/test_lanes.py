@@ -50,3 +50,68 @@ def test_a_grid_in_lanes_skips_a_failed_baseline_and_stops_for_savi(tmp_path):
   reason = json.load(open(tmp_path / "grid" / "push_r3m" / "SKIPPED.json"))["reason"]
   assert reason and "\n" not in reason and not reason.startswith("roboshape: error")
   assert not (tmp_path / "grid" / "push_savi" / "SKIPPED.json").exists()
+
+
+def _wait_for(predicate, seconds: float = 20.0) -> bool:
+  import time  # pylint: disable=import-outside-toplevel
+  deadline = time.time() + seconds
+  while time.time() < deadline:
+    if predicate():
+      return True
+    time.sleep(0.1)
+  return False
+
+
+def _gone(pid: int) -> bool:
+  """True once `pid` has exited (a zombie no one has reaped yet counts as exited)."""
+  try:
+    with open(f"/proc/{pid}/stat") as f:
+      return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+  except FileNotFoundError:
+    return True
+
+
+def test_a_second_run_on_a_held_workdir_stops_in_one_line_and_a_killed_holder_frees_it(tmp_path):
+  import signal  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  from roboshape import rundir  # pylint: disable=import-outside-toplevel
+  workdir = str(tmp_path / "run")
+  holder = subprocess.Popen(
+      [sys.executable, "-c", "import sys, time\nfrom roboshape import rundir\n"
+       "with rundir.hold_workdir(sys.argv[1]):\n  print('held', flush=True)\n  time.sleep(120)\n", workdir],
+      stdout=subprocess.PIPE, text=True, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+  try:
+    assert holder.stdout.readline().strip() == "held"
+    config = common.get_config("push", "state", "tiny")
+    config.stages = ()
+    with pytest.raises(UserError, match=rf"is in use by another run \(pid {holder.pid}\): wait for it") as e:
+      stages.run(config, workdir)
+    assert "\n" not in str(e.value)
+    assert sorted(os.listdir(workdir)) == [rundir.RUN_LOCK]          # nothing written: no config.json
+  finally:
+    holder.send_signal(signal.SIGKILL)
+    holder.wait()
+  stages.run(config, workdir)                                          # the OS released the dead holder's lock
+  assert json.load(open(os.path.join(workdir, "config.json")))["encoder"] == "state"
+  with rundir.hold_workdir(workdir):                                   # and the finished run released its own
+    pass
+
+
+def test_a_lane_child_dies_with_its_parent_even_when_the_parent_is_killed(tmp_path):
+  import signal  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  script = ("import os, subprocess, sys, time\nfrom roboshape import lanes\n"
+            "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'],\n"
+            "    preexec_fn=lambda parent=os.getpid(): lanes.child_setup({0}, parent))\n"
+            "print(child.pid, flush=True)\ntime.sleep(120)\n")
+  parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+  child = int(parent.stdout.readline())
+  assert not _gone(child)
+  with open(f"/proc/{child}/status") as f:
+    assert next(l for l in f if l.startswith("Cpus_allowed_list")).split()[1] == "0"   # pinned as asked
+  parent.send_signal(signal.SIGKILL)
+  parent.wait()
+  assert _wait_for(lambda: _gone(child)), f"lane child {child} outlived its killed parent"

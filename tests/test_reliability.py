@@ -1,6 +1,7 @@
-"""Reliability: damaged dataset shards are re-collected, damaged checkpoints fall back to an older step, a policy
-refuses an encoder it was not trained on, videos are written atomically and rebuilt on resume, and an interrupt
-ends in one line. Tiny shapes throughout: the whole file runs in well under a minute on 2 CPU cores."""
+"""Reliability: damaged dataset shards are re-collected, damaged checkpoints fall back to an older step (an intact one
+of another config is refused, never set aside), a policy refuses an encoder it was not trained on, videos are
+written atomically and rebuilt on resume, and an interrupt ends in one line. Tiny shapes throughout: the whole file
+runs in well under a minute on 2 CPU cores."""
 import json
 import os
 import shutil
@@ -271,7 +272,36 @@ def test_no_checkpoint_that_restores_is_one_line(policy_run, tmp_path):
     _params(policy_run["config"], workdir)
   message = str(e.value)
   assert "\n" not in message and message.startswith("no checkpoint in ") and "restores (step 20:" in message
+  assert "every one is damaged" in message                     # only then does it say to move them away
   assert sorted(os.listdir(os.path.join(workdir, "policy", "checkpoints"))) == ["10", "20"]   # nothing moved
+
+
+def test_an_intact_checkpoint_of_another_config_is_refused_naming_that_config_and_never_set_aside(
+    policy_run, tmp_path, capsys):
+  """A checkpoint that reads as saved but not into this config's structure (here another policy width) is not
+  damaged: loading and resuming stop with one line that names the safe action first, no older step is tried, and
+  nothing is set aside, also when a newer step is damaged."""
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  workdir, features = _copy_run(policy_run, tmp_path)
+  ckpt_dir = os.path.join(workdir, "policy", "checkpoints")
+  wider = _policy_config(steps=30)
+  wider.policy.width = 32
+  safe = "run with the config these checkpoints were trained with (the workdir's config.json"
+  for damaged in (False, True):
+    if damaged:
+      _damage_step(workdir, 20)                                # 20 is damaged, 10 intact but of another config
+    for attempt, step, falls_back in ((lambda: _params(wider, workdir), 10 if damaged else 20, damaged),
+                                      (lambda: _params(wider, workdir, step=10), 10, False),
+                                      (lambda: bc.train(wider, workdir, features), 10 if damaged else 20, damaged)):
+      capsys.readouterr()
+      with pytest.raises(UserError) as e:
+        attempt()
+      message, err = str(e.value), capsys.readouterr().err
+      assert message.startswith(safe) and "\n" not in message, message
+      assert f"checkpoint step {step} in {ckpt_dir} is intact" in message
+      assert "move" not in message.replace("nothing was moved", "") and "damaged" not in message
+      assert ("falling back to step 10" in err) == falls_back and "damaged_step" not in err
+      assert sorted(os.listdir(ckpt_dir)) == ["10", "20"]      # nothing set aside
 
 
 def test_a_policy_refuses_an_encoder_it_was_not_trained_on(policy_run, tmp_path, monkeypatch):

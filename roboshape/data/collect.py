@@ -79,6 +79,9 @@ def config_differences(stored: Mapping[str, Any], wanted: Mapping[str, Any]) -> 
           for key in _SUMMARY_FIELDS if value(stored, key) != value(wanted, key)]
 
 
+FOREIGN_MARKERS = ("dataset_info.json", "features.json")   # TFDS metadata: a dataset is there
+
+
 def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:
   """The stored state of the dataset at `path` (None if none); a dataset of another config is a UserError."""
   state = rlds.load_state(path)
@@ -87,6 +90,10 @@ def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:
     if differences:
       raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}). Use another "
                       "--workdir, set --config.data.dir to another folder, or delete that dataset.")
+  elif any(os.path.exists(os.path.join(path, name)) for name in FOREIGN_MARKERS):
+    # roboshape writes the TFDS metadata only after roboshape.json, so metadata without it is not roboshape's
+    raise UserError(f"{path} holds a TFDS dataset that roboshape did not write (it has no "
+                    f"{data_lib.STATE_FILE}); it is left as it is: set --config.data.dir to another folder.")
   return state
 
 

@@ -283,7 +283,8 @@ class DatasetWriter:
                seed_bases: Optional[Mapping[str, int]] = None):
     self.path = path
     state = load_state(path)
-    if state is None:
+    fresh = state is None
+    if fresh:
       seed_bases = seed_bases or {split: 0 for split in targets}
       state = {
           "layout": LAYOUT,
@@ -304,6 +305,8 @@ class DatasetWriter:
     self.features = features(self.resolution, self.depth, self.has_state)
     self._serialize = EpisodeSerializer(self.features)
     os.makedirs(path, exist_ok=True)
+    if fresh:   # roboshape.json before any TFDS metadata: metadata without it is not roboshape's (collect.py)
+      fileio.atomic_write_text(os.path.join(self.path, data_lib.STATE_FILE), json.dumps(state, indent=1))
     self._remove_stale_files()
 
   @property

@@ -37,7 +37,7 @@ def trained_dir(config, workdir: str, stage_dir: str, title: str) -> str:
   if not seeds:
     return stage_dir
   selection = rundir.load_selection(stage_dir)
-  command = f"python launch.py --config=configs/{config.name}.py --workdir={workdir}"
+  command = launch_command(config, workdir)
   path = rundir.selection_path(stage_dir)
   if selection is None:
     raise UserError(f"no {title} seed is selected yet ({path} is missing): run the pretrain stage to train "
@@ -49,6 +49,12 @@ def trained_dir(config, workdir: str, stage_dir: str, title: str) -> str:
   return rundir.seed_dir(stage_dir, int(selection["selected_seed"]))
 
 
+def launch_command(config, workdir: str) -> str:
+  """The command that runs `config`'s experiment on `workdir`, with its variant (the run identity check refuses
+  another variant's run on that workdir)."""
+  return f"python launch.py --config=configs/{config.name}.py:{config.variant} --workdir={workdir}"
+
+
 def restore(config, workdir: str, model, stage_dir: str, title: str):
   """(params, step, checkpoint directory) of the newest checkpoint of `model` in <trained_dir>/checkpoints that
   restores (`trained_dir`: the selected seed's folder with savi.train.seeds); a UserError saying how to make one
@@ -58,7 +64,7 @@ def restore(config, workdir: str, model, stage_dir: str, title: str):
   params, step = checkpoint.restore_params(
       directory, abstract_params(model, int(config.env.resolution)),
       f"no {title} checkpoint in {directory}; run the pretrain stage first "
-      f"(python launch.py --config=configs/{config.name}.py --workdir={workdir}).")
+      f"({launch_command(config, workdir)}).")
   return params, step, directory
 
 

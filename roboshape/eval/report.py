@@ -65,13 +65,18 @@ def build_report(config, workdir: str) -> Dict[str, str]:
 def load_published(folder: str) -> Dict:
   """{task, encoder, summary, rollouts, levels, num_seeds, rollouts_per_seed} of a published run
   (roboshape/eval/publish.py): its results.csv, one row per rollout, read back into rollout records."""
-  with open(os.path.join(folder, rundir.RESULTS_CSV), newline="") as f:
-    rows = list(csv.DictReader(f))
-  if not rows:
-    raise UserError(f"{folder}/{rundir.RESULTS_CSV} holds no rollouts: publish the run again once it is evaluated.")
-  rollouts = [dict(r, train_seed=int(r["train_seed"]) if r.get("train_seed") else None,
-                   seed_index=int(r["seed_index"]), rollout=int(r["rollout"]), seed=int(r["seed"]),
-                   success=r["success"] == "True", length=int(r["length"])) for r in rows]
+  path = os.path.join(folder, rundir.RESULTS_CSV)
+  try:
+    with open(path, newline="", encoding="utf-8") as f:
+      rows = list(csv.DictReader(f))
+    if not rows:
+      raise UserError(f"{path} holds no rollouts: publish the run again once it is evaluated.")
+    rollouts = [dict(r, train_seed=int(r["train_seed"]) if r.get("train_seed") else None,
+                     seed_index=int(r["seed_index"]), rollout=int(r["rollout"]), seed=int(r["seed"]),
+                     success=r["success"] == "True", length=int(r["length"])) for r in rows]
+  except (ValueError, TypeError, KeyError, csv.Error) as e:    # not UTF-8, cut short, not roboshape's columns
+    raise UserError(f"{path} is damaged ({type(e).__name__}): publish the run again from its workdir "
+                    "(roboshape.eval.publish.publish), or restore the file from git.") from None
   if "reached" in rows[0]:          # a CSV of a run evaluated before milestones were recorded has no such column
     for r in rollouts:
       r["reached"] = [m for m in (r["reached"] or "").split("+") if m]
@@ -155,10 +160,8 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
                                       "scenarios")
     paths[f"table_{task}.md"] = os.path.join(out_dir, f"table_{task}.md")
     paths[f"table_{task}.tex"] = os.path.join(out_dir, f"table_{task}.tex")
-    with open(paths[f"table_{task}.md"], "w") as f:
-      f.write(md_table)
-    with open(paths[f"table_{task}.tex"], "w") as f:
-      f.write(tex)
+    fileio.atomic_write_text(paths[f"table_{task}.md"], md_table)
+    fileio.atomic_write_text(paths[f"table_{task}.tex"], tex)
     md += [f"## {task}", "", md_table]
     for encoder in encoders:
       r = loaded.get((task, encoder))
@@ -190,8 +193,7 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
   paths["results.csv"] = os.path.join(out_dir, rundir.RESULTS_CSV)
   results_lib.write_csv(paths["results.csv"], rollouts)
   paths["report.md"] = os.path.join(out_dir, "report.md")
-  with open(paths["report.md"], "w") as f:
-    f.write("\n".join(md))
+  fileio.atomic_write_text(paths["report.md"], "\n".join(md))
   return paths
 
 

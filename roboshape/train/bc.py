@@ -389,7 +389,7 @@ def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Opt
     if ckpt.latest_step() is None:
       raise UserError(f"no policy checkpoint in {ckpt_dir}: run the train_policy stage first.")
     params = ckpt.restore_params(like, step)
-  # on one device, as the controller's carry: params saved from a training mesh would otherwise come back on it
+  # on one device, as the controller's carry (where the checkpoint restores a target without shardings anyway)
   return net, jax.device_put(params, jax.devices()[0])
 
 
