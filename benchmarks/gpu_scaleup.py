@@ -49,6 +49,7 @@ import numpy as np  # pylint: disable=wrong-import-position
 
 import bc_speed  # pylint: disable=wrong-import-position  (benchmarks/bc_speed.py)
 import flops  # pylint: disable=wrong-import-position  (benchmarks/flops.py)
+import savi_speed  # pylint: disable=wrong-import-position  (benchmarks/savi_speed.py)
 from configs import common  # pylint: disable=wrong-import-position
 from configs import reproduce  # pylint: disable=wrong-import-position
 from roboshape import encoders  # pylint: disable=wrong-import-position
@@ -114,14 +115,7 @@ def measure_reconstruction(name: str, comp, config, rounds: int, steps: int) -> 
   """A pretrain step (pretrain.Compiled: SAVi's or the AE's) on random uint8 clips of the config's batch and clip
   length, state and batch placed as benchmarks/savi_speed.py and the pretrain stage place them."""
   t, res = config.savi.train, int(config.env.resolution)
-  shape = (int(t.batch_size), int(t.clip_length), res, res, 3)
-  state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
-  rng = np.random.default_rng(0)
-  video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
-  depth = None
-  if comp.depth_weight > 0:
-    depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.dp.batch)
-  key = jax.random.key(1)
+  state, video, depth, key = savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), res, res, 3))
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, depth, key).compile()
   compile_s = time.perf_counter() - start

@@ -24,6 +24,19 @@ from roboshape.models import savi  # pylint: disable=wrong-import-position
 from roboshape.train import pretrain  # pylint: disable=wrong-import-position
 
 
+def synthetic_inputs(comp, shape):
+  """(state, video, depth, key) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B, T, H,
+  W, 3], placed as the pretrain stage places them: the state replicated, the batch split. `depth` is the depth
+  target (uint16 mm) of a variant that predicts depth (:small), else None."""
+  state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
+  rng = np.random.default_rng(0)
+  video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
+  depth = None
+  if comp.depth_weight > 0:
+    depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.dp.batch)
+  return state, video, depth, jax.random.key(1)
+
+
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--variant", default="paper", choices=common.VARIANTS)
@@ -42,14 +55,7 @@ def main():
   config.savi.train.clip_length = args.frames
   pretrain.validate_config(config)
   comp = pretrain.compiled(config)
-  shape = (args.batch, args.frames, 64, 64, 3)
-  state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
-  rng = np.random.default_rng(0)
-  video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
-  depth = None    # the depth target (uint16 mm) of a variant that predicts depth (:small), else none
-  if comp.depth_weight > 0:
-    depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.dp.batch)
-  key = jax.random.key(1)
+  state, video, depth, key = synthetic_inputs(comp, (args.batch, args.frames, 64, 64, 3))
 
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, depth, key).compile()
