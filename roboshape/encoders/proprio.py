@@ -44,8 +44,8 @@ def _wrapped_step(base_step, base_inputs, width, params, carry, obs):
   """The base encoder's step with the proprioception token appended: tokens [B, N + 1, width + 1]. The entries'
   indices are fixed (indices_and_scale), their factors live in params["scale"]."""
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  base_obs = obs["image"] if tuple(base_inputs) == ("image",) else {k: obs[k] for k in base_inputs}
-  tokens, carry = base_step(params["base"], carry, base_obs)
+  from roboshape.models import encoder as encoder_lib  # pylint: disable=import-outside-toplevel
+  tokens, carry = base_step(params["base"], carry, encoder_lib.select(base_inputs, obs))
   b, n, d = tokens.shape
   index, _ = indices_and_scale()
   own = jnp.asarray(obs["state"], jnp.float32)[:, index] * params["scale"]                  # [B, P]
