@@ -5,8 +5,9 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
 
   probe, task, encoder, variant   the run's identity
   changed                         every config field that differs from `configs/common.get_config(task, encoder,
-                                  variant)`, except the bookkeeping ones (IGNORED: the dataset path, worker count,
-                                  the evaluated levels, stages, seeds of the run itself)
+                                  scale)`, the variant's scale without its modifier (`small` for `small_chunk`, so a
+                                  modifier shows as the fields it sets), except the bookkeeping ones (IGNORED: the
+                                  dataset path, worker count, the evaluated levels, stages, seeds of the run itself)
   rollouts, successes, success    the evaluation's rollouts at the train level (every training seed pooled)
   reached                         per milestone of the task, how many of those rollouts reached it
   val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
@@ -38,7 +39,7 @@ CSV_NAME = "probes.csv"
 README_NAME = "README.md"
 BEGIN, END = "<!-- probes:begin (generated from probes.csv by roboshape.study) -->", "<!-- probes:end -->"
 IGNORED = ("data.dir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds", "savi.train.seeds", "seed",
-           "name")
+           "name", "variant")
 # What a probe keeps in the study (<study>/<probe>/, same layout): everything its row is read from, and the
 # evaluation's milestone table and the policy's validation curve.
 KEPT = ("config.json", "stages.json", "eval/results.csv", "eval/milestones.md", "policy/val_metrics.json",
@@ -64,7 +65,8 @@ def _flatten(tree, prefix: str = "") -> Dict:
 def changed_fields(config: Dict) -> str:
   """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults."""
   from configs import common  # pylint: disable=import-outside-toplevel
-  default = _flatten(common.get_config(config["task"], config["encoder"], config["variant"]).to_dict())
+  scale = config["variant"].partition("_")[0]
+  default = _flatten(common.get_config(config["task"], config["encoder"], scale).to_dict())
   ran = _flatten(config)
   keys = sorted(k for k in set(ran) | set(default)
                 if ran.get(k) != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))

@@ -13,8 +13,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RECIPE = os.path.join(ROOT, "results", "small", "recipe")
 
 
-def _fake_run(workdir, **changes):
-  config = common.get_config("push", "objects", "small")
+def _fake_run(workdir, variant="small", **changes):
+  config = common.get_config("push", "objects", variant)
   for field, value in changes.items():
     common.override(config, f"{field}={value!r}")
   os.makedirs(os.path.join(workdir, "eval"))
@@ -45,6 +45,13 @@ def test_a_probe_row_reads_the_runs_files_and_names_only_what_changed(tmp_path):
   assert row["reached"] == "moved 4 halfway 3 on_target 3"
   assert (row["val_mse_best"], row["best_step"], row["val_mse_last"]) == ("0.0700", 1000, "0.0800")
   assert (row["train_policy_s"], row["pretrain_s"], row["core_hours"]) == ("600", "", f"{720 * 2 / 3600:.2f}")
+
+
+def test_a_variant_modifier_shows_as_the_fields_it_sets(tmp_path):
+  workdir = str(tmp_path / "run")
+  _fake_run(workdir, variant="small_chunk", **{"data.train_episodes": 2000})
+  chunk = common.MODIFIERS["chunk"]
+  assert study.probe_row(workdir, "chunk")["changed"] == f"data.train_episodes=2000; policy.chunk={chunk}"
 
 
 def test_adding_probes_rewrites_the_csv_and_the_readme_block_only(tmp_path):
