@@ -67,19 +67,13 @@ class Checkpointer:
       items[PARAMS] = ocp.args.StandardSave(state[PARAMS])
     self._manager.save(step, args=ocp.args.Composite(**items), force=True)
 
-  def restore(self, like: Any, step: Optional[int] = None) -> Any:
-    """Restores the checkpoint at `step` into the structure, shapes and dtypes of `like`, on `like`'s shardings
-    where its leaves have one (else on this process's first device), whatever devices saved it.
-
-    step None: the latest step that restores (see `restore_latest`). A given step that does not restore is a
-    one-line UserError.
-    """
-    if step is None:
-      return self.restore_latest(like)[0]
-    return self._given_step(step, like, STATE)
-
   def restore_params(self, like: Any, step: Optional[int] = None) -> Any:
-    """The params of the checkpoint at `step` (None: the latest that restores), as `restore` for the state."""
+    """The params of the checkpoint at `step` restored into the structure, shapes and dtypes of `like`, on `like`'s
+    shardings where its leaves have one (else on this process's first device), whatever devices saved it.
+
+    step None: the newest step whose params restore (`restore_params_latest`). A given step that does not restore is
+    a one-line UserError.
+    """
     if step is None:
       return self.restore_params_latest(like)[0]
     return self._given_step(step, like, PARAMS)
@@ -145,10 +139,6 @@ class Checkpointer:
     if self.latest_step() is None:
       return state, 0
     return self.restore_latest(state, set_aside=True)
-
-  def restore_or(self, state: Any) -> Any:
-    """The latest checkpoint restored into `state`'s structure, or `state` unchanged when there is none."""
-    return self.resume(state)[0]
 
   def restores(self, step: int) -> bool:
     """Whether checkpoint `step` restores as saved (its own shapes and dtypes, onto this process's devices): whether

@@ -6,15 +6,17 @@ roboshape/cli.py; the step times on both 2-core machines: results/small/README.m
 that use the cores badly (collection's resets, evaluation). `configs/reproduce.py:small` therefore runs two lanes;
 each lane's child makes its own cores its devices.
 
-  run_parallel(jobs, lanes, on_done)     # jobs: (name, config, run_dir); on_done(job, exit code, last line)
+  run_parallel(run, jobs, lanes, on_done)   # jobs: (name, config, run_dir); on_done(job, exit code, last line)
 
-Each job is a child `python -m roboshape.lanes RUN_DIR`, which reads its config (pickled) on stdin and runs it as
-`roboshape.stages.run(config, RUN_DIR)`, so it resumes and fails exactly as `launch.py` would; everything it prints
-goes to RUN_DIR/log.txt (appended across resumes). Lane i owns the cores cores[i::lanes] of this process's affinity,
-and a job's simulator workers inherit them. Ctrl-C or SIGTERM interrupts every child (each stops the way an
-interrupted run stops and resumes the same way) and re-raises here; a parent that dies any other way (SIGKILL)
-takes its children with it (`child_setup`). Each child holds its run's workdir (rundir.hold_workdir), so a second
-grid on the same runs stops in one line instead of running them twice.
+Each job is a child `python -m roboshape.lanes RUN_DIR`, which reads `run` and its config (pickled) on stdin and
+calls `run(config, RUN_DIR)`. `run` is a module-level function, pickled by name: the child imports its module when
+it unpickles it, so this module imports none of its callers. A grid passes `roboshape.stages.run`, so each run
+resumes and fails exactly as `launch.py` would; everything it prints goes to RUN_DIR/log.txt (appended across
+resumes). Lane i owns the cores cores[i::lanes] of this process's affinity, and a job's simulator workers inherit
+them. Ctrl-C or SIGTERM interrupts every child (each stops the way an interrupted run stops and resumes the same
+way) and re-raises here; a parent that dies any other way (SIGKILL) takes its children with it (`child_setup`).
+Each child holds its run's workdir (rundir.hold_workdir), so a second grid on the same runs stops in one line
+instead of running them twice.
 """
 import ctypes
 import os
@@ -23,7 +25,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Callable, List, Sequence, Set, Tuple
+from typing import Any, Callable, List, Sequence, Set, Tuple
 
 from roboshape import fileio
 from roboshape.errors import UserError
@@ -31,7 +33,8 @@ from roboshape.errors import UserError
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 _PR_SET_PDEATHSIG = 1   # linux/prctl.h
 LOG_FILE = "log.txt"
-Job = Tuple[str, object, str]     # (name, config, run_dir)
+Job = Tuple[str, Any, str]        # (name, config, run_dir)
+Run = Callable[[Any, str], None]  # run(config, run_dir): a module-level function, so it pickles by name
 
 
 def lane_cores(lanes: int) -> List[Set[int]]:
@@ -63,7 +66,7 @@ def child_setup(cores: Set[int], parent: int) -> None:
     os._exit(128 + signal.SIGTERM)  # pylint: disable=protected-access
 
 
-def _start(job: Job, cores: Set[int]) -> subprocess.Popen:
+def _start(run: Run, job: Job, cores: Set[int]) -> subprocess.Popen:
   _, config, run_dir = job
   os.makedirs(run_dir, exist_ok=True)
   env = dict(os.environ)
@@ -72,7 +75,7 @@ def _start(job: Job, cores: Set[int]) -> subprocess.Popen:
     child = subprocess.Popen([sys.executable, "-m", "roboshape.lanes", run_dir], stdin=subprocess.PIPE,
                              stdout=log, stderr=subprocess.STDOUT, env=env,
                              preexec_fn=lambda parent=os.getpid(): child_setup(cores, parent))
-  child.stdin.write(pickle.dumps(config))
+  child.stdin.write(pickle.dumps((run, config)))
   child.stdin.close()
   return child
 
@@ -91,10 +94,11 @@ def _interrupt(children) -> None:
       child.wait()
 
 
-def run_parallel(jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, str], None],
+def run_parallel(run: Run, jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, str], None],
                  poll_seconds: float = 2.0) -> None:
-  """Runs the jobs in order, up to `lanes` at once, one lane per share of the cores (`lane_cores`); calls
-  `on_done(job, exit code, last line of its log)` as each one ends (exit code 2: a one-line UserError)."""
+  """Runs `run(config, run_dir)` of each job in its own child, in order, up to `lanes` at once, one lane per share of
+  the cores (`lane_cores`); calls `on_done(job, exit code, last line of its log)` as each one ends (exit code 2: a
+  one-line UserError)."""
   free = lane_cores(lanes)
   pending = list(jobs)
   running = []      # (job, child, cores, start)
@@ -104,7 +108,7 @@ def run_parallel(jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, s
         job, cores = pending.pop(0), free.pop(0)
         print(f"[roboshape] lane on cores {sorted(cores)}: {job[0]} -> {job[2]} (log: "
               f"{os.path.join(job[2], LOG_FILE)})", flush=True)
-        running.append((job, _start(job, cores), cores, time.time()))
+        running.append((job, _start(run, job, cores), cores, time.time()))
       time.sleep(poll_seconds)
       for entry in [e for e in running if e[1].poll() is not None]:
         job, child, cores, start = entry
@@ -120,16 +124,15 @@ def run_parallel(jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, s
 
 
 def main(argv) -> int:
-  """The child: `python -m roboshape.lanes RUN_DIR`, its config pickled on stdin."""
+  """The child: `python -m roboshape.lanes RUN_DIR`, (run, config) pickled on stdin."""
   if len(argv) != 2:
-    print("usage: python -m roboshape.lanes RUN_DIR < pickled config (started by roboshape.lanes.run_parallel)",
+    print("usage: python -m roboshape.lanes RUN_DIR < pickled (run, config) (started by roboshape.lanes.run_parallel)",
           file=sys.stderr)
     return 2
-  config = pickle.load(sys.stdin.buffer)
-  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  run, config = pickle.load(sys.stdin.buffer)     # imports run's module (roboshape.stages for a grid)
   print(f"[roboshape] {config.name} on cores {sorted(os.sched_getaffinity(0))}, pid {os.getpid()}", flush=True)
   try:
-    stages.run(config, argv[1])
+    run(config, argv[1])
   except UserError as e:
     print(f"roboshape: error: {e}", file=sys.stderr, flush=True)
     return 2

@@ -15,6 +15,7 @@ import ml_collections
 
 from roboshape import config_check
 from roboshape import encoders
+from roboshape import lanes as lanes_lib
 from roboshape import rundir
 from roboshape.errors import UserError
 from roboshape.grid import grid_configs
@@ -131,8 +132,8 @@ def run_grid(config, workdir: str) -> None:
 
 
 def _run_lanes(config, runs, lanes: int) -> None:
-  """The grid's runs in `lanes` parallel lanes, after each task's dataset is collected here."""
-  from roboshape import lanes as lanes_lib  # pylint: disable=import-outside-toplevel
+  """The grid's runs in `lanes` parallel lanes, after each task's dataset is collected here: each lane's child
+  process calls `run` on its run's config, as this process would."""
   collected = set()
   for task, _, sub, sub_dir in runs:
     if task not in collected and "collect" in sub.stages:
@@ -155,8 +156,8 @@ def _run_lanes(config, runs, lanes: int) -> None:
     else:
       failed.append(f"{task} x {encoder} ({message})")
 
-  lanes_lib.run_parallel([(f"{task} x {encoder}", sub, sub_dir) for task, encoder, sub, sub_dir in runs], lanes,
-                         on_done)
+  lanes_lib.run_parallel(run, [(f"{task} x {encoder}", sub, sub_dir) for task, encoder, sub, sub_dir in runs],
+                         lanes, on_done)
   if failed:
     raise UserError(f"grid runs failed: {'; '.join(failed)}; their logs are <run>/{lanes_lib.LOG_FILE}, and the "
                     "same command resumes them.")

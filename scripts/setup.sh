@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
-# Idempotent set-up for roboshape: a .venv with the pinned requirements, then a Vulkan device that SAPIEN
-# accepts (Mesa >= 24.3 from bookworm-backports on a GPU-less Debian 12; skipped where SAPIEN already finds one).
-# Cheap the second time: the venv is keyed by a hash of requirements.txt, the Vulkan probe by a stamp file.
+# Idempotent set-up for roboshape: a .venv with the pinned requirements, roboshape itself installed into it editable
+# (so `import roboshape` works from any folder, a notebook's too), then a Vulkan device that SAPIEN accepts
+# (Mesa >= 24.3 from bookworm-backports on a GPU-less Debian 12; skipped where SAPIEN already finds one).
+# Cheap the second time: the venv is keyed by a hash of requirements.txt, the editable install by whether the venv
+# already imports this checkout's roboshape from outside it, the Vulkan probe by a stamp file.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,6 +22,18 @@ if [ ! -f "$stamp" ]; then
     || die "pip install -r requirements.txt failed (see above)."
   rm -f "$VENV"/.requirements-* "$VENV/.vulkan-ok"
   touch "$stamp"
+fi
+
+# Whether the venv, run outside the repository without PYTHONPATH, imports roboshape from this checkout.
+here=$(pwd -P)
+installed() {
+  (cd / && env -u PYTHONPATH "$here/$VENV/bin/python" -c 'import os, sys, roboshape
+sys.exit(os.path.dirname(os.path.dirname(os.path.realpath(roboshape.__file__))) != sys.argv[1])' "$here") 2>/dev/null
+}
+if ! installed; then
+  say "installing roboshape into $VENV (editable: this checkout, as pyproject.toml describes it)"
+  "$VENV/bin/pip" install --quiet --disable-pip-version-check --no-deps -e . || die "pip install -e . failed (see above)."
+  installed || die "$VENV imports another roboshape than $here even after pip install -e .: see '$VENV/bin/pip show roboshape'."
 fi
 
 probe() { "$VENV/bin/python" -m roboshape.sim.probe >/dev/null 2>&1; }

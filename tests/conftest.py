@@ -1,4 +1,5 @@
-"""Shared pytest set-up: the repository root on sys.path so `configs` and `roboshape` import from any cwd."""
+"""Shared pytest set-up: the repository root on sys.path so `configs` and `roboshape` import from any cwd, and the
+tiny fixtures several test modules share (a synthetic episode and dataset, a whole tiny run)."""
 import os
 import sys
 
@@ -51,3 +52,28 @@ def synthetic_dataset(tmp_path_factory):
   path = str(tmp_path_factory.mktemp("synthetic_data") / "roboshape_push" / "1.0.0")
   return rlds.write_dataset(path, {"train": [_synthetic_episode(s) for s in range(4)],
                                    "val": [_synthetic_episode(1_000_000 + s) for s in range(2)]})
+
+
+@pytest.fixture(scope="session")
+def tiny_run(synthetic_dataset, tmp_path_factory):
+  """The workdir of a whole tiny push x savi run: configs/push_savi.py:tiny on `synthetic_dataset` (16x16), through
+  the stages pretrain, cache, train_policy and evaluate (one 10-step rollout at level train in a real simulator
+  worker, no videos). Compile-bound, so built at XLA's cheap optimisation level."""
+  import jax  # pylint: disable=import-outside-toplevel
+  from configs import common  # pylint: disable=import-outside-toplevel
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  config = common.get_config("push", "savi", "tiny")
+  config.env.resolution, config.env.max_episode_steps = 16, 10
+  config.data.dir = os.path.dirname(os.path.dirname(synthetic_dataset))    # <dir>/roboshape_push/1.0.0
+  config.stages = ("pretrain", "cache", "train_policy", "evaluate")
+  config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 0
+  config.sim.num_workers = 1
+  workdir = str(tmp_path_factory.mktemp("tiny_run") / "push_savi")
+  flag = "jax_disable_most_optimizations"
+  before = jax.config.read(flag)
+  jax.config.update(flag, True)
+  try:
+    stages.run(config, workdir)
+  finally:
+    jax.config.update(flag, before)
+  return workdir

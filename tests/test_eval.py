@@ -241,8 +241,7 @@ def test_persistent_crash_reported_not_counted(tmp_path):
   config = _config(levels=("train",), num_seeds=1, rollouts=4)
   config.eval.max_retries = 1
   pool = FakePool(num_envs=2, crash_forever_seed=1001)
-  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pool, FakeWorkerError,
-                       slot_videos=False)
+  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pool, FakeWorkerError)
   data = json.load(open(tmp_path / "eval" / "results.json"))
   ended = {r["seed"]: r["ended"] for r in data["rollouts"]}
   assert ended == {1000: "success", 1001: "worker_crash", 1002: "success", 1003: "horizon"}
@@ -251,17 +250,51 @@ def test_persistent_crash_reported_not_counted(tmp_path):
   assert "1 rollout(s) lost to simulator worker crashes" in open(tmp_path / "eval" / "table.md").read()
 
 
+def test_schedule_splits_each_level_into_rollouts_to_run_and_videos_to_record_again(tmp_path):
+  plan = closed_loop.rollout_plan(("train", "L1"), 1, 3, 1000)
+  log = results_lib.ResultLog(str(tmp_path / "results.jsonl"))
+  for seed, ended in ((1000, "success"), (1001, "worker_crash")):
+    log.append(dict(level="train", seed_index=0, rollout=seed - 1000, seed=seed, success=ended == "success",
+                    length=4, ended=ended))
+  without_video = lambda r, logged: logged["ended"] == "worker_crash"   # only the crashed one "has" its video
+  train, l1 = closed_loop.schedule(plan, log, 2, without_video)
+  assert (train.level, l1.level) == ("train", "L1")
+  assert [r.seed for r in train.todo] == [1002] and [r.seed for r in train.record] == [1000, 1001]
+  assert [r.seed for r in train.missing] == [1000]          # logged and recorded, its video gone: recorded again
+  assert (train.planned, train.done, train.successes) == (3, 1, 1)   # the crashed rollout is not counted
+  assert [r.seed for r in l1.todo] == [1000, 1001, 1002] and not l1.missing
+  assert (l1.planned, l1.done, l1.successes) == (3, 0, 0)
+  assert [w.record for w in closed_loop.schedule(plan, log, 0, without_video)] == [[], []]
+
+
+def test_a_recorded_rollout_gets_its_slot_video_and_a_slot_video_that_fails_leaves_the_rollout(tmp_path, capsys):
+  config = _config(levels=("train",), num_seeds=1, rollouts=2)
+  flipped = lambda frames: frames[:, :, ::-1]
+  closed_loop.evaluate(config, str(tmp_path / "a"), FakePolicy(), lambda level: FakePool(), slot_video=flipped)
+  assert sorted(os.listdir(tmp_path / "a" / "eval" / "videos")) == [
+      "train_s1000_success.gif", "train_s1000_success.mp4", "train_s1000_success_slots.gif",
+      "train_s1000_success_slots.mp4"]
+
+  def no_checkpoint(frames):
+    raise UserError("no SAVi checkpoint")
+
+  capsys.readouterr()
+  paths = closed_loop.evaluate(config, str(tmp_path / "b"), FakePolicy(), lambda level: FakePool(),
+                               slot_video=no_checkpoint)
+  assert sorted(os.listdir(tmp_path / "b" / "eval" / "videos")) == ["train_s1000_success.gif",
+                                                                    "train_s1000_success.mp4"]
+  assert "slot video of " in capsys.readouterr().out and len(json.load(open(paths["json"]))["rollouts"]) == 2
+
+
 def test_evaluate_resumes_after_interrupt(tmp_path):
   config = _config()
   expected = _expected(config)
   with pytest.raises(KeyboardInterrupt):
-    closed_loop.evaluate(config, str(tmp_path), FakePolicy(interrupt_after=12), lambda level: FakePool(),
-                         slot_videos=False)
+    closed_loop.evaluate(config, str(tmp_path), FakePolicy(interrupt_after=12), lambda level: FakePool())
   kept = results_lib.ResultLog(str(tmp_path / "eval" / "results.jsonl")).records
   assert 0 < len(kept) < len(expected)
   pools = {}
-  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pools.setdefault(level, FakePool()),
-                       slot_videos=False)
+  closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pools.setdefault(level, FakePool()))
   rerun = {(level, s) for level, p in pools.items() for s in p.reset_seeds}
   assert rerun and not rerun & {results_lib.key(r) for r in kept}      # finished rollouts are not re-run
   assert len(rerun) + len(kept) == len(expected)
@@ -271,7 +304,7 @@ def test_evaluate_resumes_after_interrupt(tmp_path):
   before = sorted(os.listdir(tmp_path / "eval" / "videos"))
   pools = {}
   closed_loop.evaluate(config, str(tmp_path), FakePolicy(), lambda level: pools.setdefault(level, FakePool()),
-                       fingerprint="other", slot_videos=False)
+                       fingerprint="other")
   assert {(level, s) for level, p in pools.items() for s in p.reset_seeds} == set(expected)   # all re-run
   assert os.path.exists(tmp_path / "eval" / "results.jsonl.stale")
   assert sorted(os.listdir(tmp_path / "eval" / "videos.stale")) == before and before
@@ -350,7 +383,7 @@ def evaluated(request, tmp_path_factory):
     pools.append(pool)
     return pool
   paths = closed_loop.evaluate(config, workdir, FakePolicy(), make_pool,
-                               sim.SimWorkerError if real else FakeWorkerError, slot_videos=False)
+                               sim.SimWorkerError if real else FakeWorkerError)
   return config, workdir, paths, pools, real
 
 
@@ -513,7 +546,7 @@ def test_evaluate_each_training_seed_into_its_own_log_then_one_table(tmp_path):
   workdir = str(tmp_path)
   for i, seed in enumerate((0, 1)):
     closed_loop.evaluate(config, workdir, FakePolicy(), lambda level: FakePool(), FakeWorkerError,
-                         fingerprint=f"policy{seed}", slot_videos=False, train_seed=seed,
+                         fingerprint=f"policy{seed}", train_seed=seed,
                          videos_per_level=1 if i == 0 else 0)
   for seed in (0, 1):
     logged = results_lib.read_log(closed_loop.log_path(workdir, seed))
@@ -533,7 +566,7 @@ def test_evaluate_each_training_seed_into_its_own_log_then_one_table(tmp_path):
   videos = sorted(os.listdir(tmp_path / "eval" / "videos"))
   for i, seed in enumerate((0, 1)):
     closed_loop.evaluate(config, workdir, FakePolicy(), lambda level: FakePool(), FakeWorkerError,
-                         fingerprint=f"other{seed}", slot_videos=False, train_seed=seed,
+                         fingerprint=f"other{seed}", train_seed=seed,
                          videos_per_level=1 if i == 0 else 0)
   assert sorted(os.listdir(tmp_path / "eval" / "videos")) == videos
   assert sorted(os.listdir(tmp_path / "eval" / "videos.stale")) == videos

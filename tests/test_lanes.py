@@ -29,7 +29,8 @@ def test_children_run_pinned_and_report_their_exit_codes(tmp_path):
       config.eval.levels = ("L9",)
     jobs.append((name, config, str(tmp_path / name)))
   ended = {}
-  lanes.run_parallel(jobs, 2, lambda job, code, line: ended.update({job[0]: (code, line)}), poll_seconds=0.2)
+  lanes.run_parallel(stages.run, jobs, 2, lambda job, code, line: ended.update({job[0]: (code, line)}),
+                     poll_seconds=0.2)
   assert ended["a"][0] == 0
   assert ended["bad"][0] == 2 and ended["bad"][1].startswith("roboshape: error: eval.levels")
   assert json.load(open(tmp_path / "a" / "config.json"))["encoder"] == "state"

@@ -13,9 +13,10 @@ A module may import its own layer or the layers below it, never one above:
   1  envs, models            the tasks and levels; the Flax modules
   0  errors, fileio, rundir, checkpoint
 
-and no module reads a private name (a leading underscore) of another module, benchmarks and scripts included.
+no two modules import each other, even through others and even within a layer (an import circle), and no module
+reads a private name (a leading underscore) of another module, benchmarks and scripts included.
 
-  python tests/test_layout.py [ROOT]      # prints the arrows that point up (and the private names) under ROOT
+  python tests/test_layout.py [ROOT]      # prints the arrows that point up, the circles and the private names
 """
 import ast
 import os
@@ -122,9 +123,38 @@ def scan(root: str) -> Tuple[List[str], List[str]]:
   return up, private
 
 
+def graph(root: str) -> Dict[str, Set[str]]:
+  """Every scanned module under `root` -> the first-party modules it imports."""
+  return {module: imports(root, module, path)[0] for module, path in modules(root)}
+
+
+def _reachable(edges: Dict[str, Set[str]], start: str) -> Set[str]:
+  """The modules `start` reaches by one or more imports (itself among them only when it is on a circle)."""
+  seen: Set[str] = set()
+  todo = list(edges.get(start, ()))
+  while todo:
+    module = todo.pop()
+    if module not in seen:
+      seen.add(module)
+      todo.extend(edges.get(module, ()))
+  return seen
+
+
+def circles(edges: Dict[str, Set[str]]) -> List[Tuple[str, ...]]:
+  """The import circles of a graph: each largest group of modules that all reach one another, sorted."""
+  reach = {module: _reachable(edges, module) for module in edges}
+  groups = {tuple(sorted(other for other in reach[module] if module in reach[other])) for module in edges}
+  return sorted(group for group in groups if group)
+
+
 def test_no_import_points_to_a_higher_layer():
   up, _ = scan(ROOT)
   assert not up, "imports that point up:\n" + "\n".join(up)
+
+
+def test_no_modules_import_each_other():
+  found = circles(graph(ROOT))
+  assert not found, "import circles:\n" + "\n".join(" <-> ".join(group) for group in found)
 
 
 def test_no_module_reads_another_modules_private_names():
@@ -153,7 +183,22 @@ def test_the_scan_sees_imports_inside_functions(tmp_path):
   assert private == ["roboshape.train.x: from roboshape.data import _y"]
 
 
+def test_a_circle_through_a_third_module_is_found_within_one_layer(tmp_path):
+  top = tmp_path / "roboshape"
+  top.mkdir()
+  (top / "__init__.py").write_text("")
+  (top / "stages.py").write_text("from roboshape import lanes\n")
+  (top / "lanes.py").write_text("def main():\n  from roboshape import status\n")
+  (top / "status.py").write_text("import roboshape.stages\n")
+  (top / "cli.py").write_text("from roboshape import stages\n")          # imports the circle, is not on it
+  assert circles(graph(str(tmp_path))) == [("roboshape.lanes", "roboshape.stages", "roboshape.status")]
+  assert scan(str(tmp_path)) == ([], [])                                  # all layer 8: no arrow points up
+
+
 if __name__ == "__main__":
-  arrows, names = scan(sys.argv[1] if len(sys.argv) > 1 else ROOT)
-  print("\n".join(arrows + names))
-  print(f"{len(arrows)} import arrows point up; {len(names)} private names read across modules")
+  where = sys.argv[1] if len(sys.argv) > 1 else ROOT
+  arrows, names = scan(where)
+  rings = [" <-> ".join(group) for group in circles(graph(where))]
+  print("\n".join(arrows + rings + names))
+  print(f"{len(arrows)} import arrows point up; {len(rings)} import circles; {len(names)} private names read across "
+        "modules")

@@ -343,7 +343,7 @@ def test_videos_are_atomic_and_rebuilt_when_missing(tmp_path, monkeypatch):
   workdir, video_dir = str(tmp_path), str(tmp_path / "eval" / "videos")
   pools = []
   make_pool = lambda level: pools.append(FakePool()) or pools[-1]
-  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool, slot_videos=False)
+  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool)
   assert sorted(os.listdir(video_dir)) == ["train_s1000_success.gif", "train_s1000_success.mp4"]
   with open(tmp_path / "eval" / "results.json") as f:
     results = json.load(f)
@@ -353,13 +353,13 @@ def test_videos_are_atomic_and_rebuilt_when_missing(tmp_path, monkeypatch):
   with open(os.path.join(video_dir, "train_s1000_success.tmp.mp4"), "wb") as f:
     f.write(b"half a video")
   pools.clear()
-  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool, slot_videos=False)
+  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool)
   assert [p.reset_seeds for p in pools] == [[1000]]                   # only the rollout of the missing video
   assert sorted(os.listdir(video_dir)) == ["train_s1000_success.gif", "train_s1000_success.mp4"]
   with open(tmp_path / "eval" / "results.json") as f:
     assert json.load(f) == results                                    # the logged results stand
   pools.clear()
-  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool, slot_videos=False)
+  closed_loop.evaluate(config, workdir, FakePolicy(), make_pool)
   assert not pools                                                    # nothing missing: no simulator started
   # A writer that fails half-way leaves neither the video nor its temporary file.
   def fail(path, frames, **kwargs):

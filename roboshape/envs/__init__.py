@@ -1,18 +1,16 @@
 """The RoboShape world: three randomized ManiSkill tasks (push, pick, place), their levels and oracle experts.
 
 Importing this package does not import the simulator; `make_env` does (in a worker process, never next to
-TensorFlow). Modules: palettes (colors and levels, pure numpy), scene (the shared ManiSkill scene), tasks (the three
-task classes), experts (batched oracle experts), contact_sheet (a PNG of every task under every level).
+TensorFlow). Modules: palettes (colors and levels, pure numpy), milestones (each task's steps to success, by name),
+scene (the shared ManiSkill scene), tasks (the three task classes), experts (batched oracle experts), contact_sheet
+(a PNG of every task under every level).
 """
+from roboshape.envs.milestones import MILESTONES  # pylint: disable=unused-import  (the package's name for it)
 from roboshape.envs.palettes import LEVEL_NAMES
 
 TASKS = ("push", "pick", "place")
 ENV_VERSION = "roboshape-envs-5"   # bumps whenever what a seed produces changes
 MIN_RESOLUTION, MAX_RESOLUTION = 16, 512
-# The steps on the way to each task's success, in order (tasks.py says when each holds); closed-loop evaluation
-# records which ones every rollout reached, so a failure reads as how far it got.
-MILESTONES = {"push": ("moved", "halfway", "on_target"), "pick": ("grasped", "lifted", "at_point"),
-              "place": ("grasped", "lifted", "over_bin", "in_bin")}
 
 
 def check_args(task: str, level: str, resolution: int = 64) -> None:

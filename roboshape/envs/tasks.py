@@ -17,7 +17,7 @@ import torch
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.actor import Actor
 
-from roboshape import envs
+from roboshape.envs.milestones import MILESTONES as TASK_MILESTONES
 from roboshape.envs import palettes
 from roboshape.envs import scene
 
@@ -76,7 +76,7 @@ class PushEnv(scene.RoboShapeEnv):
     dist = torch.linalg.norm(self.cube.pose.p[:, :2] - self.goal_pos[:, :2].to(self.device), dim=1)
     return {"success": dist <= self.SUCCESS_DIST, "cube_to_goal": dist}
 
-  MILESTONES = envs.MILESTONES["push"]
+  MILESTONES = TASK_MILESTONES["push"]
 
   def milestones(self, start: torch.Tensor, info: dict) -> torch.Tensor:
     """bool [N, 3]: the cube moved MOVED from `start` [N, 3]; it covered half its reset distance to the target's
@@ -111,7 +111,7 @@ class PickEnv(scene.RoboShapeEnv):
     grasped = self.agent.is_grasping(self.cube)
     return {"success": (dist <= self.SUCCESS_DIST) & grasped, "cube_to_goal": dist, "is_grasped": grasped}
 
-  MILESTONES = envs.MILESTONES["pick"]
+  MILESTONES = TASK_MILESTONES["pick"]
 
   def milestones(self, start: torch.Tensor, info: dict) -> torch.Tensor:
     """bool [N, 3]: the cube is grasped; grasped and LIFTED above its reset height; held at the point (success)."""
@@ -167,7 +167,7 @@ class PlaceEnv(scene.RoboShapeEnv):
     grasped = self.agent.is_grasping(self.cube)
     return {"success": inside & resting & ~grasped, "inside": inside, "is_grasped": grasped}
 
-  MILESTONES = envs.MILESTONES["place"]
+  MILESTONES = TASK_MILESTONES["place"]
 
   def milestones(self, start: torch.Tensor, info: dict) -> torch.Tensor:
     """bool [N, 4]: the cube is grasped; grasped and LIFTED above its reset height; its centre is over the bin's

@@ -191,20 +191,10 @@ def policy_fingerprint(workdir: str, train_seed=None, control=None) -> str:
   return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
-def _has_video(log: results_lib.ResultLog, r: Rollout, stem: Callable[[Rollout, str], str]) -> bool:
-  """Whether the logged rollout `r` has its video (a rollout lost to a crashed worker has none to make)."""
-  logged = next(rec for rec in log.records if results_lib.key(rec) == (r.level, r.seed))
-  return logged["ended"] == "worker_crash" or videos.exists(stem(r, logged["ended"]))
-
-
 def _slot_video_fn(config, workdir):
   """The SAVi slot-decomposition video maker (frames -> frames), for SAVi runs only."""
   if config.encoder != "savi":
     return None
-  from roboshape.eval import decomposition  # pylint: disable=import-outside-toplevel
-  helper = getattr(decomposition, "decomposition_video", None)
-  if helper is not None:
-    return lambda frames: helper(workdir, frames)
   return videos.SaviSlotVideo(workdir)
 
 
@@ -282,11 +272,12 @@ def run(config, workdir: str) -> None:
   rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                config.eval.seed_offset)     # bad settings fail before the policy loads
   make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
+  slot_video = _slot_video_fn(config, workdir)
   for i, train_seed in enumerate(rundir.train_seeds(config)):
     policy = bc.load_policy(workdir, train_seed=train_seed)
     fingerprint = policy_fingerprint(workdir, train_seed, config.policy.eval.to_dict())
-    evaluate(config, workdir, policy, make_pool, SimWorkerError, fingerprint,
-             train_seed=train_seed, videos_per_level=config.eval.videos_per_level if i == 0 else 0)
+    evaluate(config, workdir, policy, make_pool, SimWorkerError, fingerprint, train_seed=train_seed,
+             videos_per_level=config.eval.videos_per_level if i == 0 else 0, slot_video=slot_video)
 
 
 def log_path(workdir: str, train_seed=None) -> str:
@@ -296,85 +287,150 @@ def log_path(workdir: str, train_seed=None) -> str:
 
 
 def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], worker_error=Exception,
-             fingerprint: str = "", slot_videos: bool = True, train_seed=None,
-             videos_per_level: Optional[int] = None) -> Dict[str, str]:
+             fingerprint: str = "", train_seed=None, videos_per_level: Optional[int] = None,
+             slot_video: Optional[Callable[[np.ndarray], np.ndarray]] = None) -> Dict[str, str]:
   """Runs the rollouts not yet in the policy's log (`log_path`), then writes all outputs; returns their paths.
 
   `make_pool(level)` returns a context manager giving a pool (see `run_rollouts`); `fingerprint` identifies the
   policy, so a log of another policy is set aside rather than resumed. With policy.train_seeds, `train_seed` names
   the policy's seed: its rollouts carry it, and the outputs cover every training seed's log so far.
-  `videos_per_level`: rollouts recorded per level (default config.eval.videos_per_level).
+  `videos_per_level`: rollouts recorded per level (default config.eval.videos_per_level); `slot_video`: frames ->
+  the frames of a second video of each recorded rollout (e.g. `videos.SaviSlotVideo`), none without it.
   """
   plan = rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                       config.eval.seed_offset)
   log = results_lib.ResultLog(log_path(workdir, train_seed), fingerprint)
   if videos_per_level is None:
     videos_per_level = config.eval.videos_per_level
-  seed_field = {} if train_seed is None else dict(train_seed=int(train_seed))
-  video_dir = rundir.videos_dir(workdir)
-  if log.set_aside and videos_per_level and os.path.isdir(video_dir):
-    # the set-aside policy's videos go with its log (only the policy that records videos has any there)
-    shutil.rmtree(video_dir + ".stale", ignore_errors=True)
-    os.replace(video_dir, video_dir + ".stale")
-  videos.remove_partial(video_dir)       # left by a run killed while writing one
-  slot_video = _slot_video_fn(config, workdir) if slot_videos else None
+  recorder = Recorder(config, log, rundir.videos_dir(workdir), slot_video, train_seed)
+  # the set-aside policy's videos go with its log (only the policy that records videos has any there)
+  recorder.clear_videos(set_aside=bool(log.set_aside and videos_per_level))
+  start = time.time()
+  for work in schedule(plan, log, videos_per_level, recorder.has_video):
+    _run_level(config, work, policy, make_pool, worker_error, recorder)
+  paths = write_outputs(config, workdir, merged_records(config, workdir, plan, log, train_seed))
+  print(f"[roboshape] evaluation done in {time.time() - start:.0f}s: {os.path.abspath(paths['md'])}", flush=True)
+  with open(paths["md"]) as f:
+    print(f.read(), flush=True)
+  return paths
 
-  def stem(r: Rollout, ended: str) -> str:
-    return os.path.join(video_dir, f"{r.level}_s{r.seed}_{ended}")
 
-  def write_videos(r: Rollout, result: Dict, frames: np.ndarray) -> None:
-    path = stem(r, result["ended"])
-    videos.write_video(frames, path, fps=config.eval.video_fps)
-    if slot_video is not None:
-      try:
-        videos.write_video(slot_video(frames), path + "_slots", fps=config.eval.video_fps, scale=2)
-      except UserError as e:   # e.g. no SAVi checkpoint: the rollout itself stands
-        tqdm.write(f"[roboshape] SAVi slot video of {path} left out: {e}")
+@dataclasses.dataclass(frozen=True)
+class LevelWork:
+  """What one level of an evaluation still needs: `todo`, the planned rollouts not yet logged (those in `record`
+  keep their frames for videos), and `missing`, logged rollouts of `record` whose video is missing (run again only
+  to record it). `planned`, `done` and `successes` count the level's rollouts, and those logged so far (a rollout
+  lost to a crashed worker is not counted), for the progress bar."""
+  level: str
+  todo: List[Rollout]
+  record: List[Rollout]
+  missing: List[Rollout]
+  planned: int
+  done: int
+  successes: int
 
-  def on_done(r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
-    log.append(dict(task=config.task, encoder=config.encoder, **seed_field, level=r.level,
-                    seed_index=r.seed_index, rollout=r.rollout, seed=r.seed, **result))
+
+def schedule(plan: Sequence[Rollout], log: results_lib.ResultLog, videos_per_level: int,
+             has_video: Callable[[Rollout, Dict], bool]) -> List[LevelWork]:
+  """The work of each level of `plan`, in the plan's order, given what `log` holds: the first `videos_per_level`
+  rollouts of a level are the recorded ones, and `has_video(rollout, its logged record)` says whether one that is
+  logged has its video."""
+  logged = {results_lib.key(rec): rec for rec in log.records}
+  work = []
+  for level in dict.fromkeys(r.level for r in plan):
+    planned = [r for r in plan if r.level == level]
+    counted = [rec for rec in log.records if rec["level"] == level and rec["ended"] != "worker_crash"]
+    record = planned[:videos_per_level]
+    work.append(LevelWork(
+        level=level, todo=[r for r in planned if (r.level, r.seed) not in logged], record=record,
+        missing=[r for r in record if (r.level, r.seed) in logged and not has_video(r, logged[(r.level, r.seed)])],
+        planned=len(planned), done=len(counted), successes=sum(bool(rec["success"]) for rec in counted)))
+  return work
+
+
+def _run_level(config, work: LevelWork, policy, make_pool: Callable[[str], object], worker_error,
+               recorder: "Recorder") -> None:
+  """Runs the level's rollouts still to do, then re-records its missing videos, in one pool (none when neither)."""
+  if not work.todo and not work.missing:
+    print(f"[roboshape] evaluate {work.level}: all {work.planned} rollouts already done", flush=True)
+    return
+  label = f"{config.task}/{config.encoder}/{work.level}"
+  with make_pool(work.level) as pool:
+    if work.todo:
+      run_rollouts(pool, policy, work.todo, recorder.on_done, record=work.record,
+                   max_retries=config.eval.max_retries, worker_error=worker_error, desc=f"evaluate {label}",
+                   initial=(work.done, work.successes))
+    if work.missing:
+      print(f"[roboshape] evaluate {work.level}: {len(work.missing)} video(s) missing from {recorder.video_dir}; "
+            "re-recording their rollouts (the logged results stand)", flush=True)
+      run_rollouts(pool, policy, work.missing, recorder.on_rerecorded, record=work.missing,
+                   max_retries=config.eval.max_retries, worker_error=worker_error,
+                   desc=f"re-record videos {label}")
+
+
+class Recorder:
+  """Where an evaluation's finished rollouts go: each one appended to the policy's log with the fields that
+  identify it (task, encoder, training seed, level, seeds), and the frames of a recorded one written as its video
+  <video_dir>/<level>_s<seed>_<ended>.{mp4,gif} (and, given a `slot_video` maker, as <...>_slots beside it)."""
+
+  def __init__(self, config, log: results_lib.ResultLog, video_dir: str,
+               slot_video: Optional[Callable[[np.ndarray], np.ndarray]] = None, train_seed=None):
+    self.log, self.video_dir, self.slot_video = log, video_dir, slot_video
+    self.fields = dict(task=config.task, encoder=config.encoder,
+                       **({} if train_seed is None else dict(train_seed=int(train_seed))))
+    self.fps = config.eval.video_fps
+
+  def clear_videos(self, set_aside: bool) -> None:
+    """Deletes the temporary files of videos a killed run left half-written; with `set_aside` (the log of another
+    policy was set aside), first moves the video folder to <video_dir>.stale, beside that log."""
+    if set_aside and os.path.isdir(self.video_dir):
+      shutil.rmtree(self.video_dir + ".stale", ignore_errors=True)
+      os.replace(self.video_dir, self.video_dir + ".stale")
+    videos.remove_partial(self.video_dir)
+
+  def stem(self, r: Rollout, ended: str) -> str:
+    return os.path.join(self.video_dir, f"{r.level}_s{r.seed}_{ended}")
+
+  def has_video(self, r: Rollout, logged: Dict) -> bool:
+    """Whether the logged rollout `r` has its video (a rollout lost to a crashed worker has none to make)."""
+    return logged["ended"] == "worker_crash" or videos.exists(self.stem(r, logged["ended"]))
+
+  def on_done(self, r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
+    """`run_rollouts`' on_done: logs the rollout, and writes its videos when it was recorded."""
+    self.log.append(dict(self.fields, level=r.level, seed_index=r.seed_index, rollout=r.rollout, seed=r.seed,
+                         **result))
     if frames is not None:
-      write_videos(r, result, frames)
+      self._write_videos(r, result["ended"], frames)
 
-  def on_rerecorded(r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
-    logged = next(rec for rec in log.records if results_lib.key(rec) == (r.level, r.seed))
+  def on_rerecorded(self, r: Rollout, result: Dict, frames: Optional[np.ndarray]) -> None:
+    """`run_rollouts`' on_done for a rollout run again for its missing video: writes the video and leaves the log
+    as it is, saying so when the re-run ended otherwise than the logged one."""
+    logged = next(rec for rec in self.log.records if results_lib.key(rec) == (r.level, r.seed))
     if frames is None:
       tqdm.write(f"[roboshape] the video of {r.level}/seed {r.seed} is still missing: its rollout lost its worker")
       return
     if (result["success"], result["length"]) != (logged["success"], logged["length"]):
       tqdm.write(f"[roboshape] note: re-recorded {r.level}/seed {r.seed} ended {result['ended']} after "
                  f"{result['length']} steps, the logged rollout {logged['ended']} after {logged['length']}")
-    write_videos(r, result, frames)
+    self._write_videos(r, result["ended"], frames)
 
-  start = time.time()
-  for level in tuple(config.eval.levels):
-    planned = [r for r in plan if r.level == level]
-    todo = [r for r in planned if not log.done(r.level, r.seed)]
-    done = [rec for rec in log.records if rec["level"] == level and rec["ended"] != "worker_crash"]
-    recorded = planned[:videos_per_level]
-    missing = [r for r in recorded if log.done(r.level, r.seed) and not _has_video(log, r, stem)]
-    if not todo and not missing:
-      print(f"[roboshape] evaluate {level}: all {len(planned)} rollouts already done", flush=True)
-      continue
-    with make_pool(level) as pool:
-      if todo:
-        run_rollouts(pool, policy, todo, on_done, record=recorded,
-                     max_retries=config.eval.max_retries, worker_error=worker_error,
-                     desc=f"evaluate {config.task}/{config.encoder}/{level}",
-                     initial=(len(done), sum(bool(r["success"]) for r in done)))
-      if missing:
-        print(f"[roboshape] evaluate {level}: {len(missing)} video(s) missing from {video_dir}; re-recording "
-              "their rollouts (the logged results stand)", flush=True)
-        run_rollouts(pool, policy, missing, on_rerecorded, record=missing, max_retries=config.eval.max_retries,
-                     worker_error=worker_error, desc=f"re-record videos {config.task}/{config.encoder}/{level}")
+  def _write_videos(self, r: Rollout, ended: str, frames: np.ndarray) -> None:
+    path = self.stem(r, ended)
+    videos.write_video(frames, path, fps=self.fps)
+    if self.slot_video is not None:
+      try:
+        videos.write_video(self.slot_video(frames), path + "_slots", fps=self.fps, scale=2)
+      except UserError as e:   # e.g. no SAVi checkpoint: the rollout itself stands
+        tqdm.write(f"[roboshape] slot video of {path} left out: {e}")
+
+
+def merged_records(config, workdir: str, plan: Sequence[Rollout], log: results_lib.ResultLog,
+                   train_seed=None) -> List[Dict]:
+  """The planned rollouts of every training seed's log so far, seed by seed: `log`, the one being written, for
+  `train_seed`, the others as their files hold them."""
   keys = {(r.level, r.seed) for r in plan}
   records = []
   for seed in rundir.train_seeds(config):
     logged = log.records if seed == train_seed else results_lib.read_log(log_path(workdir, seed))
     records += [r for r in logged if results_lib.key(r) in keys]
-  paths = write_outputs(config, workdir, records)
-  print(f"[roboshape] evaluation done in {time.time() - start:.0f}s: {os.path.abspath(paths['md'])}", flush=True)
-  with open(paths["md"]) as f:
-    print(f.read(), flush=True)
-  return paths
+  return records

@@ -7,9 +7,11 @@
   a = gmm_sample(gmm, rng, noise=0.1)                   # a mode drawn by its weight, its mean plus scaled noise
 
 The head puts tanh on the means (actions are normalised to [-1, 1]) and softplus plus a floor on the scales.
-The mixture log-density is written with `jax.scipy.stats.norm.logpdf` and `jax.nn.log_softmax` /
-`jax.nn.logsumexp`, because distrax and TensorFlow Probability's JAX substrate do not import under the jax
-version roboshape runs (0.10); the test suite checks it against scipy's densities.
+The mixture is written by hand with `jax.scipy.stats.norm.logpdf` and `jax.nn.log_softmax` / `jax.nn.logsumexp`
+rather than with distrax's `MixtureSameFamily` (or TensorFlow Probability's JAX substrate), which roboshape does not
+use: the head needs only a log-density, a mean and a sample, each a few lines the test suite checks against
+scipy's densities, and writing them keeps distrax and TFP (whose JAX substrate needs a nightly build under the
+jax version roboshape pins) out of the dependencies.
 """
 from typing import NamedTuple
 
