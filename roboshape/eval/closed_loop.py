@@ -198,8 +198,9 @@ def _has_video(log: results_lib.ResultLog, r: Rollout, stem: Callable[[Rollout, 
 
 
 def _slot_video_fn(config, workdir):
-  """The SAVi slot-decomposition video maker (frames -> frames), for SAVi runs only."""
-  if config.encoder != "savi":
+  """The SAVi slot-decomposition video maker (frames -> frames), for encoders registered with slot videos only."""
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  if not encoders.get(config.encoder).slot_videos:
     return None
   from roboshape.eval import decomposition  # pylint: disable=import-outside-toplevel
   helper = getattr(decomposition, "decomposition_video", None)
