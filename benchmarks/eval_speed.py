@@ -40,7 +40,7 @@ def random_savi_policy(config):
   from roboshape.train import pretrain
   comp = pretrain.compiled(config)
   r = config.env.resolution
-  params = comp.init_state(jax.random.key(0), (1, config.savi.train.clip_length, r, r, 3))["params"]
+  params = comp.init_state(jax.random.key(0), (1, config.pretrain.train.clip_length, r, r, 3))["params"]
   init = savi.initial_slots(comp.model, params, 1)[0]
   encoder = FrozenEncoder(
       name="savi", params=params, step=functools.partial(savi.frozen_step, comp.model),

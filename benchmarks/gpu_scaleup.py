@@ -9,12 +9,12 @@ ml_collections carried as a wheel in .whl/), from the repository root:
 
 Without a GPU it prints one line and exits 0. On a GPU it measures, each as the median over rounds of chained steps
 after compiling and one warm-up step (jax.block_until_ready at the end of each round):
-  SAVi:  the `:paper` SAVi-S pretrain step (forward, backward, Adam) at savi.train.batch_size clips of
-         savi.train.clip_length 64x64 frames, built as benchmarks/savi_speed.py builds it (pretrain.compiled);
+  SAVi:  the `:paper` SAVi-S pretrain step (forward, backward, Adam) at pretrain.train.batch_size clips of
+         pretrain.train.clip_length 64x64 frames, built as benchmarks/savi_speed.py builds it (pretrain.compiled);
   BC:    the `:paper` behaviour-cloning step (policy.width, num_layers, policy.train.batch_size, history) on SAVi-like
          tokens (savi.num_slots x savi.slot_size a frame), built as benchmarks/bc_speed.py builds it
          (bc_speed.compiled_step, the batch on the device as train_policy puts it);
-  AE:    the `ae` encoder's pretrain step (pretrain_ae.compiled, the same training fields as SAVi's) when the time
+  AE:    the `ae` encoder's pretrain step (pretrain.compiled, the same pretrain section as SAVi's) when the time
          budget allows; otherwise the SAVi step stands in for it, as an upper bound (said in the output);
   matmul: a dense float32 matmul (benchmarks/flops.py) at JAX's default precision, the rate the steps are set against.
 Each step's FLOPs come from XLA's cost analysis of the compiled step; achieved TFLOP/s = FLOPs / median step time.
@@ -57,13 +57,11 @@ from roboshape import grid as grid_lib  # pylint: disable=wrong-import-position
 from roboshape import rundir  # pylint: disable=wrong-import-position
 from roboshape.models import savi  # pylint: disable=wrong-import-position
 from roboshape.train import pretrain  # pylint: disable=wrong-import-position
-from roboshape.train import pretrain_ae  # pylint: disable=wrong-import-position
 from roboshape.train import sharding  # pylint: disable=wrong-import-position
 
 SIM_MODULES = ("mani_skill", "sapien")                         # the simulator
 DATA_MODULES = ("tensorflow", "tensorflow_datasets")           # the RLDS/TFDS dataset and the feature cache
 HEAVY_MODULES = SIM_MODULES + DATA_MODULES + ("torch",)
-PRETRAIN_MODULES = {"roboshape.train.pretrain": "savi", "roboshape.train.pretrain_ae": "ae"}
 AE_START_BY_S = 200      # measure the AE step only if it can start this many seconds into the run
 TRY_MIN_S = 60           # seconds of budget a try at the :tiny pipeline or physx_cuda needs left to start
 
@@ -114,7 +112,7 @@ def time_rounds(step, state, args, rounds: int, steps: int) -> list:
 def measure_reconstruction(name: str, comp, config, rounds: int, steps: int) -> Measured:
   """A pretrain step (pretrain.Compiled: SAVi's or the AE's) on random uint8 clips of the config's batch and clip
   length, state and batch placed as benchmarks/savi_speed.py and the pretrain stage place them."""
-  t, res = config.savi.train, int(config.env.resolution)
+  t, res = config.pretrain.train, int(config.env.resolution)
   state, video, depth, key = savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), res, res, 3))
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, depth, key).compile()
@@ -128,14 +126,14 @@ def paper_config(encoder: str, variant: str, batch: int):
   config = common.get_config("pick", encoder, variant)
   config.env.resolution = 64
   if batch:
-    config.savi.train.batch_size = batch
+    config.pretrain.train.batch_size = batch
   return config
 
 
 def measure_savi(variant: str, batch: int, rounds: int, steps: int) -> Measured:
   config = paper_config("savi", variant, batch)
   pretrain.validate_config(config)
-  t = config.savi.train
+  t = config.pretrain.train
   log(f"SAVi ({variant}): batch {t.batch_size} x {t.clip_length} frames of 64x64, K={config.savi.num_slots}, "
       f"D={config.savi.slot_size}; compiling")
   return measure_reconstruction("SAVi pretrain step", pretrain.compiled(config), config, rounds, steps)
@@ -143,9 +141,9 @@ def measure_savi(variant: str, batch: int, rounds: int, steps: int) -> Measured:
 
 def measure_ae(variant: str, batch: int, rounds: int, steps: int) -> Measured:
   config = paper_config("ae", variant, batch)
-  pretrain_ae.validate_config(config)
+  pretrain.validate_config(config)
   log("AE: the same batch and clips as SAVi's; compiling")
-  return measure_reconstruction("AE pretrain step", pretrain_ae.compiled(config), config, rounds, steps)
+  return measure_reconstruction("AE pretrain step", pretrain.compiled(config), config, rounds, steps)
 
 
 def measure_bc(variant: str, batch: int, rounds: int, steps: int) -> Measured:
@@ -226,12 +224,11 @@ def grid_rows(pretrain_step_s: dict, bc_step_s: float) -> list:
     row = rows.setdefault(encoder, Row(encoder, tokens=tokens_per_frame(sub, encoder),
                                        in_paper_grid=encoder in paper_encoders))
     row.tasks += 1
-    module = encoders.get(encoder).pretrain
-    if module:
-      runs = len(pretrain.seeds_of(sub)) or 1
+    if encoders.get(encoder).pretrain:
+      runs = len(rundir.train_seeds(sub, "pretrain"))
       row.pretrain_runs += runs
-      row.pretrain_steps = int(sub.savi.train.steps)
-      row.pretrain_s += runs * int(sub.savi.train.steps) * pretrain_step_s[PRETRAIN_MODULES.get(module, "savi")]
+      row.pretrain_steps = int(sub.pretrain.train.steps)
+      row.pretrain_s += runs * int(sub.pretrain.train.steps) * pretrain_step_s.get(encoder, pretrain_step_s["savi"])
     runs = len(rundir.train_seeds(sub))
     row.bc_runs += runs
     row.bc_steps = int(sub.policy.train.steps)
@@ -268,14 +265,14 @@ def print_projection(savi_m: Measured, ae_m, bc_m: Measured, smoke: bool) -> Non
 def print_assumptions(savi_m: Measured, bc_m: Measured) -> None:
   ev = common.get_config("push", "savi", "paper").eval
   lines = (
-      "hours = runs x steps (the :paper configs' savi.train.steps, policy.train.steps) x the median step time "
-      "above; runs: pretraining seeds (savi.train.seeds, () = one run) and policy training seeds "
+      "hours = runs x steps (the :paper configs' pretrain.train.steps, policy.train.steps) x the median step time "
+      "above; runs: pretraining seeds (pretrain.train_seeds, () = one run) and policy training seeds "
       "(reproduce.py's grid.train_seeds per task) per cell of 3 tasks x encoder",
       f"each run also compiles its step once (SAVi {savi_m.compile_s:.0f} s, BC {bc_m.compile_s:.0f} s here), not "
       "counted",
       "the timed steps reuse one batch already on the GPU: the input pipeline (TFDS clips for pretraining, the "
       "feature cache's windows for BC), checkpoints, logging and in-training validation (SAVi every "
-      "savi.eval.every steps, BC every policy.train.eval_every) are not counted",
+      "pretrain.eval.every steps, BC every policy.train.eval_every) are not counted",
       "BC of every encoder is timed on SAVi's tokens (the most a frame of the paper's encoders gives the trunk: "
       "its sequence is history x (tokens + 1)); fewer tokens a frame cost at most that, so those BC hours are "
       "upper bounds",

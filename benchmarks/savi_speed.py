@@ -51,8 +51,8 @@ def main():
   for item in args.set:
     common.override(config, item)
   config.env.resolution = 64
-  config.savi.train.batch_size = args.batch
-  config.savi.train.clip_length = args.frames
+  config.pretrain.train.batch_size = args.batch
+  config.pretrain.train.clip_length = args.frames
   pretrain.validate_config(config)
   comp = pretrain.compiled(config)
   state, video, depth, key = synthetic_inputs(comp, (args.batch, args.frames, 64, 64, 3))

@@ -34,7 +34,8 @@ STAGES = rundir.STAGES     # every stage, in the order a run takes them
 TASK_CONTROL = {"place": dict(action="sample", history=1)}
 
 
-def _pick(variant: str, paper, small, tiny):
+def _pick(variant: str, *, paper, small, tiny):
+  """The value of `variant` among one value per variant, each given by its name."""
   return {"paper": paper, "small": small, "tiny": tiny}[variant]
 
 
@@ -46,8 +47,8 @@ def env_config(variant: str) -> ml_collections.ConfigDict:
       max_distractors=4,
       max_episode_steps=0,      # 0: the task's own horizon (>= 1.5x the expert's 95th percentile)
       sim_backend="physx_cpu",  # or "physx_cuda" (physics on a GPU); each worker owns one env either way
-      # also store the camera's depth (uint16 mm) in the dataset, for savi.train.depth_weight (the :small's SAVi)
-      depth=variant == "small",
+      # also store the camera's depth (uint16 mm) in the dataset, for pretrain.train.depth_weight (:small's)
+      depth=_pick(variant, paper=False, small=True, tiny=False),
   ))
 
 
@@ -69,107 +70,137 @@ def data_config(variant: str) -> ml_collections.ConfigDict:
   """
   return ml_collections.ConfigDict(dict(
       dir="",                   # "": <workdir>/data; set it to share one dataset per task between experiments
-      train_episodes=_pick(variant, 2000, 200, 4),
+      train_episodes=_pick(variant, paper=2000, small=200, tiny=4),
       val_fraction=0.05,        # validation episodes, from seeds disjoint from the training ones
       min_val_episodes=1,
   ))
 
 
+def pretrain_config(variant: str) -> ml_collections.ConfigDict:
+  """The pretrain stage (roboshape/train/pretrain.py): how whichever model the run's encoder pretrains is trained.
+
+  One section for every pretrained model rather than one per model: the AE is the control that holds pretraining
+  equal to SAVi's, and a shared section makes that true by construction (an override reaches the training of
+  whichever model the run trains). What describes a model lives in its own section (savi, ae).
+
+  train.clip_norm bounds the global norm of the loss's gradient. The loss is minimised as a mean over a clip's pixel
+  values (clip_length x h x w x 3, h x w the frames the model reconstructs); train.clip_norm_of says which loss the
+  bound is stated for: "mean", that loss itself, or "sum", the loss summed over those values as SAVi's is, the
+  division by their number done where the clip and the model are known (pretrain.make_optimizer), so a longer clip
+  or larger frames keep the bound's meaning. As Adam's epsilon scales with the clip, :paper's "sum" gives SAVi's
+  updates exactly; :small and :tiny bound the mean.
+  """
+  return ml_collections.ConfigDict(dict(
+      train=ml_collections.ConfigDict(dict(
+          steps=_pick(variant, paper=100_000, small=8_000, tiny=20),
+          batch_size=_pick(variant, paper=64, small=4, tiny=2),
+          clip_length=6,
+          learning_rate=_pick(variant, paper=2e-4, small=4e-4, tiny=1e-3),
+          warmup_steps=_pick(variant, paper=2500, small=200, tiny=2),
+          clip_norm=0.05,           # global gradient norm, of the loss clip_norm_of names
+          clip_norm_of=_pick(variant, paper="sum", small="mean", tiny="mean"),   # "mean" or "sum" (SAVi's)
+          # > 0: also reconstruct depth (metres), weighted so against the RGB MSE; needs env.depth=True data
+          depth_weight=_pick(variant, paper=0.0, small=0.25, tiny=0.0),
+          checkpoint_every=_pick(variant, paper=1000, small=250, tiny=10),
+          keep_checkpoints=3,
+          log_every=_pick(variant, paper=50, small=10, tiny=1),
+      )),
+      eval=ml_collections.ConfigDict(dict(
+          every=_pick(variant, paper=5000, small=500, tiny=20),   # steps between validations (and after the last)
+          episodes=_pick(variant, paper=32, small=8, tiny=1),     # validation episodes
+          frames=_pick(variant, paper=24, small=24, tiny=6),      # first frames of each episode
+      )),
+      # (): one run with config.seed, in <workdir>/<encoder>/. (s1, s2, ...): one run per seed in
+      # <encoder>/seed_<s>/, the one with the best final validation served (<encoder>/selected.json; the metric is
+      # the encoder's, e.g. SAVi's FG-ARI). Needs pretrain.eval.episodes >= 1 with two seeds or more.
+      train_seeds=(),
+  ))
+
+
+def _frame_encoder(variant: str) -> ml_collections.ConfigDict:
+  """The CNN that turns a frame into features, SAVi's and the AE's alike (roboshape/models/savi.py:CNNEncoder)."""
+  return ml_collections.ConfigDict(dict(
+      features=_pick(variant, paper=(32,) * 5, small=(32,) * 5, tiny=(16,) * 5),
+      kernel_size=5,
+      strides=_pick(variant, paper=(1, 1, 1, 1, 1), small=(2, 1, 1, 1, 1), tiny=(2, 1, 1, 1, 1)),
+      mlp_size=_pick(variant, paper=64, small=64, tiny=32),
+      # SAVi-S: the MLP maps back to the CNN's 32 channels
+      output_size=_pick(variant, paper=32, small=64, tiny=32),
+  ))
+
+
+def _frame_decoder(variant: str) -> ml_collections.ConfigDict:
+  """The spatial-broadcast decoder that draws a frame, SAVi's and the AE's alike (SpatialBroadcastDecoder)."""
+  return ml_collections.ConfigDict(dict(
+      grid_size=0,            # broadcast grid side; 0: env.resolution / pool / prod(strides), 8x8 at 64x64
+      features=_pick(variant, paper=(64, 64, 64, 64), small=(32, 16), tiny=(16, 16, 16)),
+      kernel_size=_pick(variant, paper=5, small=3, tiny=3),
+      strides=_pick(variant, paper=(2, 2, 2, 1), small=(2, 2), tiny=(2, 2, 2)),
+      # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose" (SAVi-S's)
+      upsampling=_pick(variant, paper="transpose", small="subpixel", tiny="subpixel"),
+      # grid position embedding: "coords" (a linear map of the pixel coordinates) or "learned" (a free vector
+      # per grid cell; with kernel_size=1 and strides all 1 the decoder is a per-pixel MLP)
+      position=_pick(variant, paper="coords", small="learned", tiny="coords"),
+  ))
+
+
+_FRAME_POOL = dict(paper=1, small=2, tiny=1)   # frames are average-pooled by this factor before the model sees them
+
+
 def savi_config(variant: str) -> ml_collections.ConfigDict:
-  """SAVi, the object-centric video encoder (roboshape/models/savi.py, roboshape/train/pretrain.py).
+  """SAVi, the object-centric video encoder (roboshape/models/savi.py; trained by the pretrain stage).
 
   paper: SAVi-S (google-research/slot-attention-video, savi_conditional_small.py, with its unconditional learned
   Gaussian first slots) on 64x64 frames, with its corrector (one slot-attention iteration per frame and no MLP: SAVi
   refines the slots across frames through the recurrence) and two departures: a fifth encoder conv, as the paper
-  says, and 4 coordinate channels in the position embeddings. Parameter counts: results/savi_small/README.md.
+  says, and 4 coordinate channels in the position embeddings.
   small: the same design made cheap enough for a 2-core CPU (frames pooled to 32x32, masks scored at 64x64; a
   stride-2 first conv; a decoder of alpha masks only, from a learned vector per grid cell, with one colour per slot;
-  9 slots, no spares), trained the way that moved FG-ARI off zero on this data (learned queries without noise, 3
-  iterations with the last one's gradient, a predictor that starts as LayerNorm, a depth target); every variant
-  tried and its curve: results/savi_small/README.md.
+  9 slots, no spares), with learned queries without noise, 3 iterations with the last one's gradient, a predictor
+  that starts as LayerNorm and a depth target (pretrain.train.depth_weight); the variants tried:
+  results/savi_small/README.md.
   tiny: a toy model for tests and `make demo`.
-
-  train.clip_norm clips the gradient of the loss, a mean over a clip's pixel values. SAVi's loss is their sum, whose
-  gradient is larger by the number of values, so :paper clips at SAVi's 0.05 divided by that number; as Adam's
-  epsilon scales with the clip (pretrain.make_optimizer), that gives SAVi's updates exactly. :small and :tiny keep
-  0.05 on the mean, the setting their published runs were trained with.
   """
-  paper = variant == "paper"
+  decoder = _frame_decoder(variant)
+  # "spatial": RGB per pixel from the CNN; "slot": one colour per slot (a Dense of the slot), masks spatial
+  decoder.rgb = _pick(variant, paper="spatial", small="slot", tiny="spatial")
   return ml_collections.ConfigDict(dict(
-      num_slots=9 if variant == "small" else 11,  # robot, cube, target/bin, up to 4 distractors, table, backdrop
-                                                   # (+ 2 spares in paper and tiny)
-      slot_size=_pick(variant, 128, 128, 32),
-      pool=_pick(variant, 1, 2, 1),  # frames are average-pooled by this factor before SAVi sees them
+      # robot, cube, target/bin, up to 4 distractors, table, backdrop (+ 2 spares in paper and tiny)
+      num_slots=_pick(variant, paper=11, small=9, tiny=11),
+      slot_size=_pick(variant, paper=128, small=128, tiny=32),
+      pool=_pick(variant, **_FRAME_POOL),
       # first frame's slots: "shared" (one learned mean + noise) or "queries" (K learned vectors, no noise)
-      init_mean="queries" if variant == "small" else "shared",
-      num_iterations=_pick(variant, 1, 3, 2),  # slot-attention iterations per frame (SAVi-S: 1)
-      slot_gradient="last" if variant == "small" else "full",  # "full": backprop through every iteration; "last":
-                                                               # only through the last (first-order implicit gradient)
-      slot_mlp_size=_pick(variant, 0, 256, 64),  # the corrector's residual MLP; 0: none (SAVi-S)
-      encoder=ml_collections.ConfigDict(dict(
-          features=(32, 32, 32, 32, 32) if variant != "tiny" else (16, 16, 16, 16, 16),
-          kernel_size=5,
-          strides=(1, 1, 1, 1, 1) if paper else (2, 1, 1, 1, 1),
-          mlp_size=_pick(variant, 64, 64, 32),
-          output_size=_pick(variant, 32, 64, 32),  # SAVi-S: the MLP maps back to the CNN's 32 channels
-      )),
+      init_mean=_pick(variant, paper="shared", small="queries", tiny="shared"),
+      num_iterations=_pick(variant, paper=1, small=3, tiny=2),  # slot-attention iterations per frame (SAVi-S: 1)
+      # "full": backprop through every iteration; "last": only through the last (first-order implicit gradient)
+      slot_gradient=_pick(variant, paper="full", small="last", tiny="full"),
+      slot_mlp_size=_pick(variant, paper=0, small=256, tiny=64),  # the corrector's residual MLP; 0: none (SAVi-S)
+      encoder=_frame_encoder(variant),
       predictor=ml_collections.ConfigDict(dict(
           num_heads=4,
-          mlp_size=_pick(variant, 256, 256, 64),
-          identity_init=variant == "small",  # True: the predictor starts as LayerNorm (no mixing of slots) at step 0
+          mlp_size=_pick(variant, paper=256, small=256, tiny=64),
+          # True: the predictor starts as LayerNorm (no mixing of slots) at step 0
+          identity_init=_pick(variant, paper=False, small=True, tiny=False),
       )),
-      decoder=ml_collections.ConfigDict(dict(
-          grid_size=0,            # broadcast grid side; 0: env.resolution / pool / prod(strides), 8x8 at 64x64
-          features=_pick(variant, (64, 64, 64, 64), (32, 16), (16, 16, 16)),
-          kernel_size=5 if paper else 3,
-          strides=_pick(variant, (2, 2, 2, 1), (2, 2), (2, 2, 2)),
-          rgb="slot" if variant == "small" else "spatial",  # "spatial": RGB per pixel from the CNN; "slot": one
-                                                             # colour per slot (a Dense of the slot), masks spatial
-          # stride-2 layers: "subpixel" (conv + depth-to-space; fast on CPU) or "transpose" (SAVi-S's)
-          upsampling="transpose" if paper else "subpixel",
-          # grid position embedding: "coords" (a linear map of the pixel coordinates) or "learned" (a free vector
-          # per grid cell; with kernel_size=1 and strides all 1 the decoder is a per-pixel MLP)
-          position="learned" if variant == "small" else "coords",
-      )),
-      train=ml_collections.ConfigDict(dict(
-          steps=_pick(variant, 100_000, 8_000, 20),
-          batch_size=_pick(variant, 64, 4, 2),
-          clip_length=6,
-          learning_rate=_pick(variant, 2e-4, 4e-4, 1e-3),
-          warmup_steps=_pick(variant, 2500, 200, 2),
-          # global gradient norm of the mean loss; :paper: SAVi's 0.05 on its loss summed over a clip's
-          # clip_length x 64 x 64 x 3 values (see the docstring; recompute it if you change those)
-          clip_norm=0.05 / (6 * 64 * 64 * 3) if paper else 0.05,
-          # > 0: also reconstruct depth (metres), weighted so against the RGB MSE; needs env.depth=True data
-          depth_weight=_pick(variant, 0.0, 0.25, 0.0),
-          checkpoint_every=_pick(variant, 1000, 250, 10),
-          keep_checkpoints=3,
-          log_every=_pick(variant, 50, 10, 1),
-          # (): one run with config.seed, in <workdir>/savi/. (s1, s2, ...): one run per seed in savi/seed_<s>/,
-          # the one with the best final validation FG-ARI served (savi/selected.json); the AE is selected by its
-          # validation reconstruction MSE. Needs savi.eval.episodes >= 1 with two seeds or more.
-          seeds=(),
-      )),
-      eval=ml_collections.ConfigDict(dict(
-          every=_pick(variant, 5000, 500, 20),     # steps between evaluations (and after the last step)
-          episodes=_pick(variant, 32, 8, 1),       # validation episodes
-          frames=_pick(variant, 24, 24, 6),        # first frames of each episode, encoded recurrently
+      decoder=decoder,
+      eval=ml_collections.ConfigDict(dict(         # SAVi's validation (roboshape/eval/slots.py)
           background_ids=(0, 1),                   # segmentation ids FG-ARI and mIoU ignore: backdrop and table
-          figure_frames=4,
+          figure_frames=4,                         # frames in each validation's decomposition figure
       )),
   ))
 
 
 def ae_config(variant: str) -> ml_collections.ConfigDict:
-  """The `ae` encoder, a frame autoencoder (roboshape/models/ae.py, roboshape/train/pretrain_ae.py).
+  """The `ae` encoder, a frame autoencoder (roboshape/models/ae.py; trained by the pretrain stage).
 
-  Only what SAVi has no field for: every training field (data, steps, batch, schedule, clipping, depth weight,
-  cadence) and the encoder, decoder and pool are read from the savi section, so the pretraining is equal by
-  construction.
+  Its frame encoder, decoder and pooling default to SAVi's (the same tables), so that the AE differs from SAVi only
+  in having no objects; its training is the pretrain section, SAVi's.
   """
-  del variant
   return ml_collections.ConfigDict(dict(
-      latent_size=0,            # D, the width of the one token per frame; 0: savi.slot_size (128 at :small)
+      latent_size=0,            # D, the width of the one token per frame; 0: savi.slot_size
+      pool=_pick(variant, **_FRAME_POOL),
+      encoder=_frame_encoder(variant),
+      decoder=_frame_decoder(variant),
   ))
 
 
@@ -199,9 +230,9 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
   """
   return ml_collections.ConfigDict(dict(
       history=10,               # H: frames the trunk sees in training (and the number of time embeddings)
-      width=_pick(variant, 256, 128, 32),
-      num_layers=_pick(variant, 8, 4, 1),
-      num_heads=_pick(variant, 4, 4, 2),
+      width=_pick(variant, paper=256, small=128, tiny=32),
+      num_layers=_pick(variant, paper=8, small=4, tiny=1),
+      num_heads=_pick(variant, paper=4, small=4, tiny=2),
       mlp_ratio=4,
       dropout=0.1,
       action_dim=7,
@@ -216,17 +247,17 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       # policy/seed_<s>/, each evaluated on the same evaluation seeds; tables then give mean ± std over them
       train_seeds=(),
       train=ml_collections.ConfigDict(dict(
-          steps=_pick(variant, 100_000, 5000, 20),
-          batch_size=_pick(variant, 256, 64, 4),
+          steps=_pick(variant, paper=100_000, small=5000, tiny=20),
+          batch_size=_pick(variant, paper=256, small=64, tiny=4),
           learning_rate=1e-4,
           weight_decay=1e-4,
-          warmup_steps=_pick(variant, 2000, 200, 2),
+          warmup_steps=_pick(variant, paper=2000, small=200, tiny=2),
           grad_clip=1.0,
-          log_every=_pick(variant, 100, 50, 5),
-          eval_every=_pick(variant, 2000, 500, 10),
-          checkpoint_every=_pick(variant, 5000, 500, 10),
-          val_batch_size=_pick(variant, 256, 128, 16),
-          max_val_samples=_pick(variant, 20_000, 5000, 1000),   # action targets scored per validation pass
+          log_every=_pick(variant, paper=100, small=50, tiny=5),
+          eval_every=_pick(variant, paper=2000, small=500, tiny=10),
+          checkpoint_every=_pick(variant, paper=5000, small=500, tiny=10),
+          val_batch_size=_pick(variant, paper=256, small=128, tiny=16),
+          max_val_samples=_pick(variant, paper=20_000, small=5000, tiny=1000),  # action targets per validation pass
       )),
       eval=ml_collections.ConfigDict(dict(
           history=0,              # frames seen at control time; 0: the training history
@@ -241,11 +272,11 @@ def eval_config(variant: str) -> ml_collections.ConfigDict:
   """Closed-loop evaluation (roboshape/eval)."""
   return ml_collections.ConfigDict(dict(
       levels=LEVELS,
-      rollouts_per_seed=_pick(variant, 100, 20, 2),
-      num_seeds=_pick(variant, 3, 3, 1),
+      rollouts_per_seed=_pick(variant, paper=100, small=20, tiny=2),
+      num_seeds=_pick(variant, paper=3, small=3, tiny=1),
       seed_offset=1_000_000_000,  # env seed = seed_offset + seed_index * 100_000 + rollout (disjoint from demos)
       max_retries=2,            # re-runs of a rollout whose simulator worker died, before it is reported
-      videos_per_level=_pick(variant, 3, 3, 1),
+      videos_per_level=_pick(variant, paper=3, small=3, tiny=1),
       video_fps=20,
   ))
 
@@ -272,6 +303,7 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
       env=env_config(scale),
       sim=sim_config(scale),
       data=data_config(scale),
+      pretrain=pretrain_config(scale),
       savi=savi_config(scale),
       ae=ae_config(scale),
       baselines=baseline_config(scale),

@@ -1,12 +1,13 @@
 """Control: task 'push' with the AE encoder (a frame autoencoder pretrained on the task's own demos exactly as SAVi
-is: the same frames, steps, batches, schedule and loss, read from config.savi; frozen, one token per frame).
+is: the same frames, steps, batches, schedule and loss, from the shared pretrain section; frozen, one token per
+frame).
 
 Command:  python launch.py --config=configs/push_ae.py:small --workdir=runs/push_ae
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/push)
 Runtime:  under an hour on one core at :small, plus the task's collection (minutes, shared by its runs); each cell's
           stage times: results/small/README.md.
 Results:  results/small/push_ae/README.md
-Its pretrain stage is roboshape/train/pretrain_ae.py; ae.latent_size sets the token width (0: savi.slot_size).
+Its pretrain stage is roboshape/train/pretrain.py; ae.latent_size sets the token width (0: savi.slot_size).
 """
 from configs import common
 

@@ -18,7 +18,7 @@ Variants:
          each stage took. Two runs at once (grid.lanes=2), each pinned to one core, each logging to
          <run>/log.txt. Baselines whose weights are absent (config.baselines.*.path) are skipped, said in the
          report. One task's row alone: --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
-         --config.savi.train.seeds="(0,)" for one training seed and one SAVi seed).
+         --config.pretrain.train_seeds="(0,)" for one training seed and one SAVi seed).
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 
 Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<encoder>/ (one run:
@@ -46,9 +46,9 @@ def get_config(variant: str = "paper"):
   config.name = f"reproduce_{variant}"
   config.stages = common.STAGES
   if variant == "small":
-    # SAVi (and the AE, which reads SAVi's training settings) trained from 3 seeds, the best validation FG-ARI
-    # (AE: reconstruction MSE) kept: object-centric models vary much between seeds (results/savi_small)
-    config.savi.train.seeds = (0, 1, 2)
+    # SAVi and the AE (the pretrain section is theirs alike) trained from 3 seeds, the best validation FG-ARI (AE:
+    # reconstruction MSE) kept: object-centric models vary much between seeds (results/savi_small)
+    config.pretrain.train_seeds = (0, 1, 2)
   config.grid = ml_collections.ConfigDict(dict(
       tasks=tasks, encoders=encoders,
       publish="results/small" if variant == "small" else "",   # where each evaluated run's results are copied

@@ -19,6 +19,7 @@ from typing import Callable, Sequence
 from absl import app
 from absl import flags
 
+from roboshape import rundir
 from roboshape.errors import UserError
 
 
@@ -88,7 +89,8 @@ def _root_cause(e: BaseException) -> str:
 
 
 def _check_overrides(argv: Sequence[str]) -> None:
-  """Parses the flags; a bad config file or an unknown --config.x.y fails with one clear line."""
+  """Parses the flags; a bad config file or an unknown --config.x.y fails with one clear line (naming the new key of
+  a moved one, rundir.RENAMED)."""
   config_args = [a for a in argv[1:] if a.startswith("--config=")]
   if config_args and "config" in flags.FLAGS:
     spec = config_args[-1].split("=", 1)[1]
@@ -107,6 +109,9 @@ def _check_overrides(argv: Sequence[str]) -> None:
       key = arg.split("=", 1)[0][len("--config."):]
       if key in prefixes:
         continue
+      if key in rundir.RENAMED:
+        raise UserError(f"config key {key!r} is now {rundir.RENAMED[key]!r} (the pretrain section, shared by every "
+                        f"pretrained encoder): use --config.{rundir.RENAMED[key]}=...")
       near = difflib.get_close_matches(key, sorted(keys), n=4, cutoff=0.6)
       if not near:
         section = key.split(".")[0]

@@ -2,8 +2,8 @@
 
   <workdir>/config.json      the config that ran (`save_config`, `load_config`)
   <workdir>/data/            the datasets (`data_root`: config.data.dir when set), one per task
-  <workdir>/savi/            SAVi: checkpoints/, tb/, figures/, val_metrics.json/.png       (`savi_dir`)
-  <workdir>/ae/              the `ae` encoder, as savi/                                      (`ae_dir`)
+  <workdir>/<encoder>/       a pretrained encoder's: checkpoints/, tb/, val_metrics.json/.png (`pretrain_dir`);
+                             savi/ (with figures/) for SAVi (`savi_dir`), ae/ for the AE (`ae_dir`)
   <workdir>/features/<key>/  encoder features cached per (dataset, encoder checkpoint)       (`features_dir`)
   <workdir>/policy/          checkpoints/, tb/, norm_stats.json, encoder.json, summary.json   (`policy_dir`);
                              with policy.train_seeds, one such folder per seed: policy/seed_<s>/
@@ -14,12 +14,16 @@ A grid config (configs/reproduce.py) runs each (task, encoder) in <workdir>/<tas
 reading the task's dataset from <data_root>/<task>; a grid run skipped for bad input leaves SKIPPED.json there.
 `STAGES` names the stages, in the order a config runs them.
 
-With savi.train.seeds = (s1, s2, ...) (roboshape/train/pretrain.py) savi/ (and ae/) hold one training run per seed
-instead, each as savi/ above, and the choice among them:
-  <savi_dir>/seed_<s>/           one seed's checkpoints/, tb/, figures/, val_metrics.json/.png  (`seed_dir`)
-  <savi_dir>/selected.json       every seed's final validation and the selected seed        (`selection_path`)
-  <savi_dir>/seeds_<metric>.png  every seed's validation curve of the selection metric       (`seeds_figure`)
-With seeds = () (the default) there is one run, with config.seed, in savi/ itself, as above.
+Training seeds, one name for every training stage (`train_seeds`): with pretrain.train_seeds = (s1, s2, ...)
+(roboshape/train/pretrain.py) the pretrained encoder's folder holds one training run per seed instead, each as
+above, and the choice among them:
+  <encoder>/seed_<s>/            one seed's checkpoints/, tb/, figures/, val_metrics.json/.png  (`seed_dir`)
+  <encoder>/selected.json        every seed's final validation and the selected seed        (`selection_path`)
+  <encoder>/seeds_<metric>.png   every seed's validation curve of the selection metric       (`seeds_figure`)
+and with policy.train_seeds one policy per seed in policy/seed_<s>/. With seeds = () (the default) there is one
+run, with config.seed, in the stage's folder itself.
+
+A config.json written before the pretrain section existed is read through `upgrade_config` (RENAMED).
 """
 import contextlib
 import fcntl
@@ -36,7 +40,19 @@ CHECKPOINTS = "checkpoints"
 RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and the per-level summary
 RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run's): one row per rollout
 RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run working in the workdir (`hold_workdir`)
-SELECTION_FILE = "selected.json"   # <savi_dir>/selected.json: the seed of savi.train.seeds that pretraining selected
+SELECTION_FILE = "selected.json"   # <encoder>/selected.json: the seed of pretrain.train_seeds pretraining selected
+
+# Fields that moved, old dotted name -> new: the pretraining settings SAVi and the AE share left the savi section.
+RENAMED = {
+    **{f"savi.train.{f}": f"pretrain.train.{f}" for f in (
+        "steps", "batch_size", "clip_length", "learning_rate", "warmup_steps", "clip_norm", "depth_weight",
+        "checkpoint_every", "keep_checkpoints", "log_every")},
+    "savi.train.seeds": "pretrain.train_seeds",
+    **{f"savi.eval.{f}": f"pretrain.eval.{f}" for f in ("every", "episodes", "frames")},
+}
+# The AE's fields that were read from the savi section before the AE had its own (its ae section's defaults).
+_AE_FROM_SAVI = ("pool", "encoder", "decoder.grid_size", "decoder.features", "decoder.kernel_size",
+                 "decoder.strides", "decoder.upsampling", "decoder.position")
 
 
 def config_path(workdir: str) -> str:
@@ -70,7 +86,48 @@ def load_config(workdir: str):
   if not isinstance(data, dict):
     raise UserError(f"{path} is damaged (a JSON {type(data).__name__}, not a config): restore it rather than "
                     "deleting the run.")
-  return ml_collections.ConfigDict(data)
+  return ml_collections.ConfigDict(upgrade_config(data))
+
+
+def upgrade_config(data: dict) -> dict:
+  """A config.json's dict in today's fields: one written before the pretrain section existed has its pretraining
+  settings moved there (RENAMED), its clip stated on the mean loss (as it was then: pretrain.train.clip_norm_of),
+  and, with an ae section, the AE's frame encoder, decoder and pool copied from the savi section it was read from.
+  Today's configs come back as they are."""
+  if "pretrain" in data or "savi" not in data:
+    return data
+  data = json.loads(json.dumps(data))
+  for old, new in RENAMED.items():
+    *parents, leaf = old.split(".")
+    node = data
+    for key in parents:
+      node = node.get(key, {})
+    if leaf in node:
+      _put(data, new, node.pop(leaf))
+  if not data["savi"].get("train", True):
+    del data["savi"]["train"]            # every field of it moved
+  _put(data, "pretrain.train.clip_norm_of", "mean")
+  if "ae" in data:
+    for field in _AE_FROM_SAVI:
+      value = _get(data["savi"], field)
+      if value is not None:
+        _put(data["ae"], field, value)
+  return data
+
+
+def _get(tree: dict, dotted: str):
+  for key in dotted.split("."):
+    if not isinstance(tree, dict) or key not in tree:
+      return None
+    tree = tree[key]
+  return tree
+
+
+def _put(tree: dict, dotted: str, value) -> None:
+  *parents, leaf = dotted.split(".")
+  for key in parents:
+    tree = tree.setdefault(key, {})
+  tree[leaf] = json.loads(json.dumps(value))
 
 
 def data_root(config, workdir: str) -> str:
@@ -91,13 +148,14 @@ def ae_dir(workdir: str) -> str:
   return pretrain_dir(workdir, "ae")
 
 
-def seed_dir(stage_dir: str, seed: int) -> str:
-  """The training run of one seed of savi.train.seeds inside a pretrain stage's folder (savi_dir, ae_dir)."""
-  return os.path.join(stage_dir, f"seed_{int(seed)}")
+def seed_dir(stage_dir: str, seed=None) -> str:
+  """The training run of one seed of `train_seeds` inside a training stage's folder (pretrain_dir, policy/):
+  <stage_dir>/seed_<s>/, or stage_dir itself for seed None (a stage without seeds)."""
+  return stage_dir if seed is None else os.path.join(stage_dir, f"seed_{int(seed)}")
 
 
 def selection_path(stage_dir: str) -> str:
-  """<stage_dir>/selected.json: which seed of savi.train.seeds the pretrain stage selected (`load_selection`)."""
+  """<stage_dir>/selected.json: which seed of pretrain.train_seeds the pretrain stage selected (`load_selection`)."""
   return os.path.join(stage_dir, SELECTION_FILE)
 
 
@@ -131,14 +189,13 @@ def features_dir(workdir: str, key: str) -> str:
 
 def policy_dir(workdir: str, train_seed=None) -> str:
   """<workdir>/policy/, or <workdir>/policy/seed_<s>/ for training seed s of `policy.train_seeds`."""
-  base = os.path.join(workdir, "policy")
-  return base if train_seed is None else os.path.join(base, f"seed_{int(train_seed)}")
+  return seed_dir(os.path.join(workdir, "policy"), train_seed)
 
 
-def train_seeds(config) -> tuple:
-  """The training seeds of a run's policies: config.policy.train_seeds, or (None,) when it is empty (one policy,
-  trained with config.seed, in <workdir>/policy/)."""
-  return tuple(int(s) for s in config.policy.get("train_seeds", ())) or (None,)
+def train_seeds(config, stage: str = "policy") -> tuple:
+  """The training seeds of a training stage's runs, config.<stage>.train_seeds (stage "policy" or "pretrain"), or
+  (None,) when it is empty: one run, trained with config.seed, in the stage's folder itself (`seed_dir`)."""
+  return tuple(int(s) for s in config[stage].get("train_seeds", ())) or (None,)
 
 
 def eval_dir(workdir: str) -> str:
@@ -154,7 +211,7 @@ def report_dir(workdir: str) -> str:
 
 
 def checkpoints(stage_dir: str) -> str:
-  """The orbax checkpoints of a training stage's folder (savi_dir, ae_dir, policy_dir)."""
+  """The orbax checkpoints of a training stage's folder (pretrain_dir, policy_dir)."""
   return os.path.join(stage_dir, CHECKPOINTS)
 
 

@@ -151,7 +151,7 @@ def _run_lanes(config, runs, lanes: int) -> None:
       _finish_run(config, task, encoder, sub, job[2], None)
       return
     message = line.removeprefix("roboshape: error: ") if code == 2 else f"exit status {code}: {line}"
-    if code == 2 and encoder != "savi":
+    if code == 2 and encoders.get(encoder).baseline:
       _finish_run(config, task, encoder, sub, job[2], message)
     else:
       failed.append(f"{task} x {encoder} ({message})")
@@ -164,11 +164,11 @@ def _run_lanes(config, runs, lanes: int) -> None:
 
 
 def _finish_run(config, task: str, encoder: str, sub, sub_dir: str, error) -> None:
-  """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi;
-  a run that ended well loses an old SKIPPED.json and is published when the grid publishes."""
+  """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi
+  (Kind.baseline); a run that ended well loses an old SKIPPED.json and is published when the grid publishes."""
   skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
   if error is not None:
-    if encoder == "savi":
+    if not encoders.get(encoder).baseline:
       raise UserError(error)
     os.makedirs(sub_dir, exist_ok=True)
     with open(skipped, "w") as f:

@@ -38,8 +38,8 @@ from roboshape.errors import UserError
 CSV_NAME = "probes.csv"
 README_NAME = "README.md"
 BEGIN, END = "<!-- probes:begin (generated from probes.csv by roboshape.study) -->", "<!-- probes:end -->"
-IGNORED = ("data.dir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds", "savi.train.seeds", "seed",
-           "name", "variant")
+IGNORED = ("data.dir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds", "pretrain.train_seeds",
+           "seed", "name", "variant")
 # What a probe keeps in the study (<study>/<probe>/, same layout): everything its row is read from, and the
 # evaluation's milestone table and the policy's validation curve.
 KEPT = ("config.json", "stages.json", "eval/results.csv", "eval/milestones.md", "policy/val_metrics.json",

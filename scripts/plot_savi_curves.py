@@ -20,7 +20,7 @@ from matplotlib import pyplot as plt  # pylint: disable=wrong-import-position
 
 def label(path):
   """The legend of a run: its file name, or its workdir's name for a <workdir>/savi/val_metrics.json (and the seed
-  for a <workdir>/savi/seed_<s>/val_metrics.json of savi.train.seeds)."""
+  for a <workdir>/savi/seed_<s>/val_metrics.json of pretrain.train_seeds)."""
   name = os.path.splitext(os.path.basename(path))[0]
   if name == "val_metrics":
     folder = os.path.dirname(os.path.abspath(path))

@@ -3,9 +3,9 @@
   JAX_PLATFORMS=cpu .venv/bin/python scripts/savi_diagnose.py WORKDIR [MERGE ...] [--figure PNG] [--data PATH]
   e.g. ... scripts/savi_diagnose.py runs/push_savi 2:6 8:6 2:6,8:6 --figure argmax.png   (about 3 min, 2-core CPU)
 
-Reads WORKDIR's config and latest SAVi checkpoint (the frozen encoder the policy would use), and the validation episodes the stage
-evaluates on (savi.eval.episodes x savi.eval.frames of the workdir's dataset, or of --data), with the robot counted
-as one object as the stage scores it, and prints:
+Reads WORKDIR's config and latest SAVi checkpoint (the frozen encoder the policy would use), and the validation
+episodes the stage evaluates on (pretrain.eval.episodes x pretrain.eval.frames of the workdir's dataset, or of
+--data), with the robot counted as one object as the stage scores it, and prints:
   1. the ground truth's share of foreground pixels per segmentation id, and the FG-ARI of three made-up
      segmentations (all objects in one cluster; the robot cut into a left and a right half; its pixels in the top
      3/16 of the image cut off);
@@ -73,7 +73,7 @@ def draw(path, episodes, labels, rows, frames):
 def main(args):
   config = rundir.load_config(args.workdir)
   data = validate.find_dataset(args.data or rundir.data_root(config, args.workdir))
-  n, length = args.episodes or config.savi.eval.episodes, args.frames or config.savi.eval.frames
+  n, length = args.episodes or config.pretrain.eval.episodes, args.frames or config.pretrain.eval.frames
   background = tuple(config.savi.eval.background_ids)
   fg_ari = lambda seg, masks: decomposition.fg_ari(seg, masks, background)
   episodes = []
@@ -96,7 +96,7 @@ def main(args):
     score = np.mean([fg_ari(s, one_hot(fake(s), k_fake)) for s in segs])
     print(f"   made-up segmentation, {name}: FG-ARI {score:.3f}")
 
-  model = savi.build_model(config.savi, int(config.env.resolution))
+  model = savi.model_from_config(config)
   params = encoders.build_encoder(config, args.workdir).params          # the latest SAVi checkpoint
   k, pool = model.num_slots, model.input_pool
   labels, videos, frames = [], [], []
@@ -150,8 +150,8 @@ if __name__ == "__main__":
   parser.add_argument("merges", nargs="*", help='slot relabellings "a:b,c:d" (slot a counted as b, c as d)')
   parser.add_argument("--data", default="", help="the dataset (default: the workdir config's data.dir, or "
                                                   "<workdir>/data)")
-  parser.add_argument("--episodes", type=int, default=0, help="validation episodes (default: savi.eval.episodes)")
-  parser.add_argument("--frames", type=int, default=0, help="first frames per episode (default: savi.eval.frames)")
+  parser.add_argument("--episodes", type=int, default=0, help="validation episodes (default: pretrain.eval.episodes)")
+  parser.add_argument("--frames", type=int, default=0, help="first frames per episode (default: pretrain.eval.frames)")
   parser.add_argument("--figure", help="also draw frames, segmentations and argmax slots into this PNG")
   parser.add_argument("--figure-episodes", type=lambda s: [int(x) for x in s.split(",")], default=[5, 6, 0],
                       help="comma-separated validation episodes the figure shows (default 5,6,0)")

@@ -1,4 +1,4 @@
-"""The `ae` encoder (roboshape/models/ae.py, roboshape/train/pretrain_ae.py): a frame autoencoder trained with
+"""The `ae` encoder (roboshape/models/ae.py, trained by roboshape/train/pretrain.py): a frame autoencoder trained with
 SAVi's settings and loop, frozen to one token per frame; on 16x16 synthetic clips with a 16-wide latent."""
 import itertools
 import json
@@ -20,7 +20,6 @@ from roboshape.models import ae
 from roboshape.train import cache
 from roboshape.train import history as history_lib
 from roboshape.train import pretrain
-from roboshape.train import pretrain_ae
 
 LATENT = 16
 STEPS = 4
@@ -32,14 +31,15 @@ def tiny_config(steps: int = STEPS):
   config = common.get_config("push", "ae", "tiny")
   config.env.resolution = 16
   config.ae.latent_size = LATENT
-  s = config.savi
-  s.encoder.features, s.encoder.strides, s.encoder.kernel_size = (8,) * 5, (1,) * 5, 3
-  s.encoder.mlp_size, s.encoder.output_size = 16, 16
-  s.decoder.features, s.decoder.strides, s.decoder.kernel_size = (16, 16), (2, 1), 3
-  s.train.steps, s.train.batch_size, s.train.clip_length = steps, 2, 6
-  s.train.learning_rate, s.train.warmup_steps = 3e-3, 2
-  s.train.checkpoint_every, s.train.keep_checkpoints = 2, 3
-  s.eval.every, s.eval.episodes, s.eval.frames = 2, 2, 6
+  a = config.ae
+  a.encoder.features, a.encoder.strides, a.encoder.kernel_size = (8,) * 5, (1,) * 5, 3
+  a.encoder.mlp_size, a.encoder.output_size = 16, 16
+  a.decoder.features, a.decoder.strides, a.decoder.kernel_size = (16, 16), (2, 1), 3
+  p = config.pretrain
+  p.train.steps, p.train.batch_size, p.train.clip_length = steps, 2, 6
+  p.train.learning_rate, p.train.warmup_steps = 3e-3, 2
+  p.train.checkpoint_every, p.train.keep_checkpoints = 2, 3
+  p.eval.every, p.eval.episodes, p.eval.frames = 2, 2, 6
   return config
 
 
@@ -56,7 +56,7 @@ def clip(seed: int, length: int = 6, size: int = 16) -> np.ndarray:
 
 
 class Source:
-  """batches_from(start) for pretrain_ae.train: batch i is fixed by i; remembers the indices it served, and stops
+  """batches_from(start) for pretrain.train: batch i is fixed by i; remembers the indices it served, and stops
   with KeyboardInterrupt (a kill) when asked for batch `fail_at`."""
 
   def __init__(self, fail_at=None):
@@ -89,7 +89,7 @@ def straight(tmp_path_factory):
   config = tiny_config()
   workdir = str(tmp_path_factory.mktemp("ae_run"))
   rundir.save_config(config, workdir)
-  result = pretrain_ae.train(config, workdir, Source(), [{"image": clip(100)}, {"image": clip(101)}],
+  result = pretrain.train(config, workdir, Source(), [{"image": clip(100)}, {"image": clip(101)}],
                              reconstruction.validation)
   return {"config": config, "workdir": workdir, "result": result}
 
@@ -102,8 +102,8 @@ def test_the_model_overfits_one_clip_in_rgb_and_depth():
   """30 steps on one clip (depth weighted as at :small) take the RGB reconstruction MSE below 0.3x its first value
   (measured: 0.05x) and the depth MSE below 0.5x (0.26x: Adam moves the depth output's bias ~lr per step)."""
   config = tiny_config(steps=30)
-  config.savi.train.depth_weight = 0.25
-  comp = pretrain_ae.compiled(config)
+  config.pretrain.train.depth_weight = 0.25
+  comp = pretrain.compiled(config)
   video = np.stack([clip(7), clip(7)])
   depth = np.where(video[..., 0] == 80, 1000, 400).astype(np.uint16)        # the table 1 m away, the rest 0.4 m
   state = comp.init_state(jax.random.key(0), video.shape)
@@ -118,20 +118,34 @@ def test_the_model_overfits_one_clip_in_rgb_and_depth():
   np.testing.assert_allclose(first["loss"], first["recon_mse"] + 0.25 * first["depth_mse"], rtol=1e-5)
 
 
-def test_training_settings_are_savis_by_construction():
-  config = tiny_config()
-  config.savi.train.depth_weight = 0.5
-  ae_comp, savi_comp = pretrain_ae.compiled(config), pretrain.compiled(config)
-  for step in (0, 1, 2, 3):
+@pytest.mark.parametrize("variant", ["small", "tiny"])
+def test_the_ae_is_pretrained_as_savi_is(variant):
+  """The AE and SAVi of a variant read one pretrain section (data, steps, schedule, clip, loss weights, cadence,
+  seeds), and the AE's pool, frame encoder and decoder are SAVi's; so their compiled steps train alike."""
+  savi_config, ae_config = (common.get_config("push", e, variant) for e in ("savi", "ae"))
+  assert ae_config.pretrain.to_dict() == savi_config.pretrain.to_dict()
+  assert ae_config.ae.pool == savi_config.savi.pool
+  assert ae_config.ae.encoder.to_dict() == savi_config.savi.encoder.to_dict()
+  decoder = savi_config.savi.decoder.to_dict()
+  assert decoder.pop("rgb") in ("spatial", "slot")                     # the AE's one "slot" draws RGB per pixel
+  assert ae_config.ae.decoder.to_dict() == decoder
+  ae_comp, savi_comp = pretrain.compiled(ae_config), pretrain.compiled(savi_config)   # built, not yet compiled
+  assert isinstance(ae_comp.model, ae.AE) and not isinstance(savi_comp.model, ae.AE)
+  for step in (0, 1, 100, 5000):
     assert float(ae_comp.schedule(step)) == float(savi_comp.schedule(step))
-  assert ae_comp.depth_weight == savi_comp.depth_weight == 0.5
+  assert ae_comp.depth_weight == savi_comp.depth_weight == ae_config.pretrain.train.depth_weight
   assert ae_comp.model.input_pool == savi_comp.model.input_pool
-  assert ae_comp.model.decoder_depth and ae_comp.model.latent_size == LATENT
+  assert ae_comp.model.decoder_depth == savi_comp.model.decoder_depth == (variant == "small")
+
+
+def test_the_token_width_defaults_to_savis_slot_and_must_be_positive():
+  config = tiny_config()
+  assert pretrain.compiled(config).model.latent_size == LATENT
   config.ae.latent_size = 0                                            # default: SAVi's slot size
   assert ae.latent_size(config) == config.savi.slot_size
   config.ae.latent_size = -1
   with pytest.raises(UserError, match="latent_size"):
-    pretrain_ae.validate_config(config)
+    pretrain.validate_config(config)
 
 
 def test_training_checkpoints_and_records_validation_under_ae(straight):
@@ -149,14 +163,14 @@ def test_two_steps_then_two_more_equal_four_straight(straight, tmp_path):
   config = straight["config"]
   rundir.save_config(config, str(tmp_path))
   with pytest.raises(KeyboardInterrupt):                               # killed after step 2's checkpoint
-    pretrain_ae.train(config, str(tmp_path), Source(fail_at=2))
+    pretrain.train(config, str(tmp_path), Source(fail_at=2))
   resumed = Source()
-  result = pretrain_ae.train(config, str(tmp_path), resumed)
+  result = pretrain.train(config, str(tmp_path), resumed)
   assert resumed.starts == [2] and resumed.served == [2, 3]
   assert result["step"] == STEPS and [s for s, _ in result["history"]] == [3, 4]
   assert _tree_equal(result["params"], straight["result"]["params"])
   again = Source(fail_at=0)                                            # already trained: no data read
-  assert pretrain_ae.train(config, str(tmp_path), again)["step"] == STEPS and not again.served
+  assert pretrain.train(config, str(tmp_path), again)["step"] == STEPS and not again.served
 
 
 def test_the_frozen_encoder_gives_one_memoryless_token_per_frame(straight):
@@ -175,14 +189,14 @@ def test_the_frozen_encoder_gives_one_memoryless_token_per_frame(straight):
   alone, carry = jax.jit(enc.step)(enc.params, enc.init_state(1), videos[1, 4][None])
   assert carry == () and alone.shape == (1, 1, LATENT)
   np.testing.assert_allclose(alone[0], tokens[1, 4], atol=1e-6)
-  model = pretrain_ae.compiled(straight["config"]).model
+  model = pretrain.compiled(straight["config"]).model
   latent = model.apply({"params": enc.params}, videos[0].astype(np.float32) / 255.0, method=ae.AE.encode)
   np.testing.assert_allclose(latent, tokens[0, :, 0], atol=1e-6)
 
 
 def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_path):
-  """launch.py's path for push_ae: the registry's pretrain stage (pretrain_ae) on a real dataset, then the cache."""
-  assert encoders.get("ae").pretrain == "roboshape.train.pretrain_ae"
+  """launch.py's path for push_ae: the registry's pretrain stage (the one loop) on a real dataset, then the cache."""
+  assert encoders.get("ae").pretrain == encoders.get("savi").pretrain == "roboshape.train.pretrain"
   assert "pretrain" in common.get_config("push", "ae", "tiny").stages
   config = tiny_config()
   config.data.dir = os.path.dirname(os.path.dirname(synthetic_dataset))  # <dir>/roboshape_push/1.0.0
@@ -205,10 +219,10 @@ def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_p
 
 
 def test_seeds_train_one_ae_each_and_the_lowest_final_mse_is_served(tmp_path):
-  """savi.train.seeds for the AE: one run per seed in ae/seed_<s>/, the lowest final validation reconstruction MSE
-  selected (the evaluator's MSE replaced so the ranking is known) and served by the encoder."""
+  """pretrain.train_seeds for the AE: one run per seed in ae/seed_<s>/, the lowest final validation reconstruction
+  MSE selected (the evaluator's MSE replaced so the ranking is known) and served by the encoder."""
   config = tiny_config()
-  config.savi.train.seeds = (0, 1)
+  config.pretrain.train_seeds = (0, 1)
   workdir = str(tmp_path / "run")
   rundir.save_config(config, workdir)
   scores = {0: 0.3, 1: 0.1}
@@ -222,7 +236,7 @@ def test_seeds_train_one_ae_each_and_the_lowest_final_mse_is_served(tmp_path):
     return pretrain.Validation(run=fake, keys=real.keys, describe=real.describe)
 
   episodes = [{"image": clip(100)}, {"image": clip(101)}]
-  result = pretrain_ae.train_seeds(config, workdir, lambda seed_config: (Source(), episodes), make_validation)
+  result = pretrain.train_and_select(config, workdir, lambda seed_config: (Source(), episodes), make_validation)
   root = rundir.ae_dir(workdir)
   assert sorted(os.listdir(root)) == ["seed_0", "seed_1", "seeds_recon_mse.png", "selected.json"]
   assert result["selected"] == 1 and result["selection"]["metric"] == "recon_mse"

@@ -102,11 +102,12 @@ if phase == "train":
   s.encoder.mlp_size, s.encoder.output_size = 8, 8
   s.predictor.num_heads, s.predictor.mlp_size = 2, 16
   s.decoder.features, s.decoder.strides, s.decoder.kernel_size = (8, 8), (2, 1), 3
-  s.train.batch_size, s.train.clip_length, s.train.warmup_steps = 2, 6, 1      # 2: split over two devices
-  s.train.checkpoint_every, s.train.keep_checkpoints = 2, 2
+  t = sc.pretrain.train
+  t.batch_size, t.clip_length, t.warmup_steps = 2, 6, 1      # 2: split over two devices
+  t.checkpoint_every, t.keep_checkpoints = 2, 2
   rundir.save_config(sc, savi_dir)
 sc = rundir.load_config(savi_dir)
-sc.savi.train.steps = int(savi_steps)
+sc.pretrain.train.steps = int(savi_steps)
 if previous:
   model, params, step = savi_encoder.load(savi_dir)
   same(params, saved("savi"))

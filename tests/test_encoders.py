@@ -127,3 +127,105 @@ def test_the_proprio_token_pads_to_a_wider_encoders_width():
   tokens = np.asarray(enc.encode_batch({"state": states}))
   np.testing.assert_allclose(tokens[0, :, 1, :proprio.SIZE], proprio.token(states[0]), rtol=1e-6)
   assert not tokens[0, :, 1, proprio.SIZE:-1].any() and tokens[0, :, 0, -1].tolist() == [0, 0]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A new encoder is one module: tests/toy_encoder.py, through the config check, the stage wiring and the pipeline.
+
+
+@pytest.fixture()
+def toy():
+  """tests/toy_encoder.py, registered for the test (as importing it registers it), and out of the registry after."""
+  import toy_encoder  # pylint: disable=import-outside-toplevel
+  encoders.register(toy_encoder.KIND)
+  yield toy_encoder
+  encoders._REGISTRY.pop(toy_encoder.NAME)  # pylint: disable=protected-access
+
+
+def _toy_config(toy, data_dir=""):
+  """push x toy at :tiny on the 16x16 synthetic dataset: a 1-layer policy trained 4 steps on 2 frames of history,
+  evaluated on one 4-step rollout at the train level."""
+  config = common.get_config("push", toy.NAME, "tiny")
+  config.toy = toy.section()
+  config.env.resolution, config.env.max_episode_steps = 16, 4
+  config.data.dir = data_dir
+  config.sim.num_workers = 1
+  p = config.policy
+  p.history, p.width, p.num_layers, p.num_heads, p.dropout = 2, 16, 1, 2, 0.0
+  p.train.update(dict(steps=4, batch_size=4, warmup_steps=1, log_every=2, eval_every=2, checkpoint_every=2,
+                      val_batch_size=4))
+  config.eval.levels, config.eval.num_seeds, config.eval.rollouts_per_seed = ("train",), 1, 1
+  return config
+
+
+def test_a_new_encoders_module_is_all_the_config_check_and_stage_wiring_need(toy):
+  # pylint: disable=import-outside-toplevel
+  from configs import reproduce
+  from roboshape import config_check
+  from roboshape import stages
+  config = _toy_config(toy)
+  assert config.encoder == "toy" and "pretrain" not in config.stages           # no pretrain stage of its own
+  config_check.check(config)
+  config.toy.scale = 0.0                                                         # its own range, from its module
+  with pytest.raises(UserError, match=r"^toy\.scale=0\.0: use a number > 0 \(the factor"):
+    config_check.check(config)
+  config.toy.scale = 1.0
+  config.stages = ("cache", "pretrain")
+  with pytest.raises(UserError, match="the toy encoder has no pretrain stage; drop it from --config.stages"):
+    config_check.check(config)
+  config.stages = ("cache", "train_policy", "evaluate")
+  assert all(callable(stages.stage_runner(name, config)) for name in config.stages)
+  other = common.get_config("push", "r3m", "tiny")                               # the toy's section is its own:
+  other.toy = toy.section()                                                      # another encoder's run never
+  other.toy.scale = -1.0                                                         # checks it
+  config_check.check(other)
+  grid = reproduce.get_config("tiny")
+  grid.grid.encoders = ("toy", "savi")
+  grid.toy = toy.section()
+  config_check.check(grid)
+  runs = [(encoder, tuple(sub.stages)) for _, encoder, sub, _ in stages.grid_configs(grid, "/w")]
+  assert runs == [("savi", tuple(common.STAGES[:-1])), ("toy", tuple(s for s in common.STAGES[:-1]
+                                                                     if s != "pretrain"))]
+
+
+@pytest.fixture()
+def cheap_xla():
+  """A compile-bound test: XLA's cheap optimisation level while it runs."""
+  import jax  # pylint: disable=import-outside-toplevel
+  before = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", before)
+
+
+@pytest.mark.usefixtures("cheap_xla")
+def test_a_new_encoder_runs_the_tiny_pipeline(toy, synthetic_dataset, tmp_path):
+  """cache -> train_policy -> evaluate (the real simulator, one short rollout) -> report, on the shared synthetic
+  dataset: its features are the toy's tokens, its table names it by its title, and it gets no slot videos."""
+  import csv  # pylint: disable=import-outside-toplevel
+  import json  # pylint: disable=import-outside-toplevel
+  import os  # pylint: disable=import-outside-toplevel
+  pytest.importorskip("roboshape.sim")
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  from roboshape.data import reader  # pylint: disable=import-outside-toplevel
+  from roboshape.train import cache  # pylint: disable=import-outside-toplevel
+  config = _toy_config(toy, os.path.dirname(os.path.dirname(synthetic_dataset)))  # <dir>/roboshape_push/1.0.0
+  config.stages = ("cache", "train_policy", "evaluate", "report")
+  workdir = str(tmp_path / "push_toy")
+  stages.run(config, workdir)
+  encoder = encoders.build_encoder(config, workdir)
+  features = cache.feature_dir(config, workdir, encoder)
+  with open(os.path.join(features, "manifest.json")) as f:
+    manifest = json.load(f)
+  assert (manifest["encoder"], manifest["num_tokens"], manifest["token_dim"]) == ("toy", 4, 3)
+  episode = next(reader.read_episodes(synthetic_dataset, "val"))
+  first = episode["image"][0].astype(np.float32) / 255.0                       # [16, 16, 3]
+  np.testing.assert_allclose(cache.load_split(features, "val")["features"][0, 1], first[:8, 8:].mean(axis=(0, 1)),
+                             atol=1e-6)                                          # token 1: the top right quadrant
+  with open(os.path.join(workdir, "eval", "results.csv")) as f:
+    rows = list(csv.DictReader(f))
+  assert [(r["encoder"], r["level"]) for r in rows] == [("toy", "train")] and 1 <= int(rows[0]["length"]) <= 4
+  assert "| | Toy |" in open(os.path.join(workdir, "eval", "table.md")).read()
+  videos = os.listdir(os.path.join(workdir, "eval", "videos"))
+  assert any(v.endswith(".mp4") for v in videos) and not any("_slots" in v for v in videos)
+  assert os.path.isfile(os.path.join(workdir, "report", "report.md"))

@@ -578,7 +578,8 @@ def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
   assert set(small.grid.tasks) == set(common.TASKS) and {"savi", "ae", "objects", "state"} <= set(small.grid.encoders)
   seeds = {(task, enc): tuple(sub.policy.train_seeds) for task, enc, sub, _ in stages.grid_configs(small, "/w")}
   assert seeds[("push", "state")] == (0, 1, 2) and seeds[("pick", "savi")] == ()
-  assert tuple(small.savi.train.seeds) == (0, 1, 2) and tuple(reproduce.get_config("tiny").savi.train.seeds) == ()
+  assert tuple(small.pretrain.train_seeds) == (0, 1, 2)
+  assert tuple(reproduce.get_config("tiny").pretrain.train_seeds) == ()
   # each run is its task x encoder's own config (place: a sampled mode, one frame at control time) but for what the
   # grid sets on purpose: the shared dataset, the seeds and the stages
   def flat(d, prefix=""):
@@ -589,6 +590,6 @@ def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
   for task, enc, sub, _ in stages.grid_configs(small, "/w"):
     a, b = flat(sub.to_dict()), flat(common.get_config(task, enc, "small").to_dict())
     differ = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
-    assert differ <= {"data.dir", "policy.train_seeds", "savi.train.seeds", "stages"}, (task, enc, differ)
+    assert differ <= {"data.dir", "policy.train_seeds", "pretrain.train_seeds", "stages"}, (task, enc, differ)
   evals = {task: (sub.policy.eval.action, sub.policy.eval.history) for task, _, sub, _ in stages.grid_configs(small, "/w")}
   assert evals == {"push": ("mean", 0), "pick": ("mean", 0), "place": ("sample", 1)}

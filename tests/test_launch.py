@@ -92,8 +92,8 @@ def test_chunk_variant_turns_on_action_chunking():
 def test_override_sets_a_nested_field_from_a_python_literal():
   config = common.get_config("push", "savi", "tiny")
   common.override(config, "savi.decoder.strides=(2, 2)")
-  common.override(config, "savi.train.learning_rate=1e-3")
-  assert tuple(config.savi.decoder.strides) == (2, 2) and config.savi.train.learning_rate == 1e-3
+  common.override(config, "pretrain.train.learning_rate=1e-3")
+  assert tuple(config.savi.decoder.strides) == (2, 2) and config.pretrain.train.learning_rate == 1e-3
   with pytest.raises(KeyError):
     common.override(config, "savi.no_such_field.x=1")
 
@@ -114,3 +114,23 @@ def test_host_devices_one_per_core_of_the_process(monkeypatch):
   assert cli.host_device_per_core(override=True) == 1
   assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_fast_math=false",
                                              "--xla_force_host_platform_device_count=1"]
+
+
+def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields():
+  """The committed :small runs' config.json hold SAVi's training settings in savi.train/savi.eval and the AE's frame
+  model nowhere: read back (rundir.load_config), they are today's fields with their values, and differ from
+  today's :small defaults only in the field they predate (policy.proprio)."""
+  from roboshape import rundir  # pylint: disable=import-outside-toplevel
+  from roboshape import study  # pylint: disable=import-outside-toplevel
+  folder = os.path.join(ROOT, "results", "small", "push_ae")
+  with open(os.path.join(folder, "config.json")) as f:
+    old = json.load(f)
+  config = rundir.load_config(folder)
+  assert config.pretrain.train.steps == old["savi"]["train"]["steps"] == 8000
+  assert tuple(config.pretrain.train_seeds) == tuple(old["savi"]["train"]["seeds"])
+  assert (config.pretrain.train.clip_norm, config.pretrain.train.clip_norm_of) == (0.05, "mean")
+  assert config.pretrain.eval.frames == old["savi"]["eval"]["frames"] and "train" not in config.savi
+  assert config.ae.encoder.to_dict() == old["savi"]["encoder"] and config.ae.pool == old["savi"]["pool"]
+  assert study.changed_fields(config.to_dict()) == "policy.proprio=None"
+  today = common.get_config("push", "ae", "small").to_dict()
+  assert rundir.upgrade_config(today) == today                        # today's configs come back as they are

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from configs import common
+from roboshape import config_check
+from roboshape import encoders
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.encoders import savi as savi_encoder
@@ -56,10 +58,12 @@ def tiny_config():
   s.encoder.mlp_size, s.encoder.output_size = 16, 16
   s.predictor.num_heads, s.predictor.mlp_size = 2, 32
   s.decoder.features, s.decoder.strides, s.decoder.kernel_size = (16, 16), (2, 1), 3
-  s.train.steps, s.train.batch_size, s.train.clip_length = STEPS, 1, 6
-  s.train.learning_rate, s.train.warmup_steps = 3e-3, 5
-  s.train.checkpoint_every, s.train.keep_checkpoints = 10, 2
-  s.eval.every, s.eval.episodes, s.eval.frames, s.eval.figure_frames = STEPS, 2, 6, 3
+  s.eval.figure_frames = 3
+  p = config.pretrain
+  p.train.steps, p.train.batch_size, p.train.clip_length = STEPS, 1, 6
+  p.train.learning_rate, p.train.warmup_steps = 3e-3, 5
+  p.train.checkpoint_every, p.train.keep_checkpoints = 10, 2
+  p.eval.every, p.eval.episodes, p.eval.frames = STEPS, 2, 6
   return config
 
 
@@ -90,13 +94,13 @@ def _fast_compile():
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
   """A tiny SAVi overfitted on one clip (STEPS steps), with its workdir: trained as the pretrain stage does, with
-  savi.train.seeds = () (one run with config.seed)."""
+  pretrain.train_seeds = () (one run with config.seed)."""
   config = tiny_config()
   workdir = str(tmp_path_factory.mktemp("savi_run"))
   rundir.save_config(config, workdir)
   episodes = [synthetic_episode(1), synthetic_episode(2)]
   source = Source(episodes[0]["image"])
-  result = pretrain.train_seeds(config, workdir, lambda c: (source, episodes), slot_eval.validation)
+  result = pretrain.train_and_select(config, workdir, lambda c: (source, episodes), slot_eval.validation)
   comp = pretrain.compiled(config)
   return {"config": config, "workdir": workdir, "result": result, "episodes": episodes, "source": source,
           "comp": comp, "decompose": functools.partial(savi.decompose, comp.model)}
@@ -210,14 +214,19 @@ def test_the_paper_savi_has_savi_s_size_and_transposed_conv_decoder():
 
 def test_the_paper_clip_on_the_mean_loss_gives_savis_updates_on_the_summed_loss():
   """SAVi clips at 0.05 the gradient of its loss summed over a clip's N pixel values (Adam eps 1e-8); :paper's loss
-  is the mean, so the same updates need the clip and Adam's epsilon divided by N."""
+  is the mean, so the same updates need the clip and Adam's epsilon divided by N: :paper states 0.05 on the sum."""
   c = common.get_config("pick", "savi", "paper")
   side = int(c.env.resolution) // int(c.savi.pool)
-  n = int(c.savi.train.clip_length) * side * side * 3
-  assert c.savi.train.clip_norm == pytest.approx(0.05 / n, rel=1e-12)
-  savi_train = c.savi.train.copy_and_resolve_references()
-  savi_train.clip_norm = 0.05
-  ours, theirs = pretrain.make_optimizer(c.savi.train), pretrain.make_optimizer(savi_train)
+  n = int(c.pretrain.train.clip_length) * side * side * 3
+  assert pretrain.values_per_clip(c, c.savi.pool) == n == 6 * 64 * 64 * 3
+  assert (c.pretrain.train.clip_norm, c.pretrain.train.clip_norm_of) == (0.05, "sum")
+  assert pretrain.clip_norm(c.pretrain.train, n) == 0.05 / (6 * 64 * 64 * 3)    # :paper's clip on the mean, as ever
+  other = c.copy_and_resolve_references()          # a longer clip of smaller frames: still 0.05 on the summed loss
+  other.pretrain.train.clip_length, other.env.resolution = 12, 32
+  assert pretrain.clip_norm(other.pretrain.train, pretrain.values_per_clip(other, 1)) == 0.05 / (12 * 32 * 32 * 3)
+  savi_train = c.pretrain.train.copy_and_resolve_references()
+  savi_train.clip_norm_of = "mean"                               # SAVi's own: 0.05 on the loss it minimises, the sum
+  ours, theirs = pretrain.make_optimizer(c.pretrain.train, n), pretrain.make_optimizer(savi_train, n)
   rng = np.random.default_rng(0)
   params = {"w": jnp.zeros((50, 40)), "b": jnp.zeros((40,))}
   ours_state, theirs_state = ours.init(params), theirs.init(params)
@@ -364,7 +373,7 @@ def test_a_depth_decoder_mixes_each_slots_depth_by_the_masks():
 def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   """loss = recon MSE + depth_weight * depth MSE (metres), the depth MSE as computed by hand, and it falls on one clip."""
   config = tiny_config()
-  config.savi.train.depth_weight = 0.5
+  config.pretrain.train.depth_weight = 0.5
   comp = pretrain.compiled(config)
   video = synthetic_episode(3)["image"][None]
   depth = (400 + 600 * (synthetic_episode(3)["segmentation"] == 1)).astype(np.uint16)[None]  # table 1 m, rest 0.4 m
@@ -379,14 +388,11 @@ def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   for _ in range(25):
     new_state, last = comp.train_step(new_state, video, depth, key)
   assert float(last["depth_mse"]) < 0.3 * want
-  config.savi.train.depth_weight = -0.5
-  with pytest.raises(UserError, match="depth_weight=-0.5: use a number >= 0"):
-    pretrain.validate_config(config)
 
 
 def test_a_depth_weight_without_depth_in_the_data_is_a_user_error(tmp_path):
   config = tiny_config()
-  config.savi.train.depth_weight = 1.0
+  config.pretrain.train.depth_weight = 1.0
   with pytest.raises(UserError, match="env.depth=True"):
     pretrain.train(config, str(tmp_path), Source(synthetic_episode(1)["image"]))
 
@@ -432,6 +438,10 @@ def test_bad_resolution_is_a_user_error():
   common.override(broken, "savi.num_iterations=0")
   with pytest.raises(UserError, match="savi.num_iterations=0: use an int >= 1"):
     pretrain.validate_config(broken)
+  broken = tiny_config()
+  broken.pretrain.train.depth_weight = -0.5          # the pretrain section's ranges: checked before any stage
+  with pytest.raises(UserError, match="pretrain.train.depth_weight=-0.5: use a number >= 0"):
+    config_check.check(broken)
 
 
 def test_pool_frames_known_values():
@@ -475,7 +485,7 @@ def test_a_pooled_model_is_evaluated_at_the_segmentation_resolution(tmp_path):
   def oracle(_, clip):
     return {"masks": masks[None], "recon": pooled[None], "rgb": np.repeat(pooled[None, :, None], 3, axis=2)}
 
-  result = slot_eval.evaluate(oracle, None, [{"image": frames, "segmentation": seg}], config.savi.eval, pool=2)
+  result = slot_eval.evaluate(oracle, None, [{"image": frames, "segmentation": seg}], frames=6, pool=2)
   assert result["fg_ari"] == pytest.approx(1.0)
   assert result["recon_mse"] == pytest.approx(0.0, abs=1e-10)
   config.savi.pool = 3
@@ -532,13 +542,13 @@ def test_per_frame_fg_ari_forgives_slots_that_swap_objects_between_frames():
     masks = np.moveaxis(np.eye(3, dtype=np.float32)[slot_of], -1, 1)[None]
     return {"masks": masks, "recon": video.astype(np.float32) / 255.0, "rgb": None}
 
-  result = slot_eval.evaluate(oracle, None, [episode], tiny_config().savi.eval)
+  result = slot_eval.evaluate(oracle, None, [episode], frames=6)
   assert result["fg_ari_frames"] == pytest.approx(1.0)
   assert result["fg_ari"] < 0.1 and result["recon_mse"] == pytest.approx(0.0)
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# savi.train.seeds: one run per seed, the best final validation FG-ARI served.
+# pretrain.train_seeds: one run per seed, the best final validation FG-ARI served.
 
 SEEDS = (3, 1)
 FAKE_FG_ARI = {3: 0.5, 1: 0.2}     # the evaluator's FG-ARI, replaced so that the ranking is known: seed 3 wins
@@ -561,14 +571,14 @@ def run_seeds(config, workdir, episodes, scores=FAKE_FG_ARI, fail_at=None):
     sources[seed_config.seed] = Source(episodes[0]["image"], fail_at=fail_at)
     return sources[seed_config.seed], episodes
 
-  return pretrain.train_seeds(config, workdir, source, fake_validation(scores)), sources
+  return pretrain.train_and_select(config, workdir, source, fake_validation(scores)), sources
 
 
 @pytest.fixture(scope="module")
 def seeded(tmp_path_factory, trained):
-  """SAVi trained with savi.train.seeds = SEEDS in a workdir of its own."""
+  """SAVi trained with pretrain.train_seeds = SEEDS in a workdir of its own."""
   config = tiny_config()
-  config.savi.train.seeds = SEEDS
+  config.pretrain.train_seeds = SEEDS
   workdir = str(tmp_path_factory.mktemp("savi_seeds"))
   rundir.save_config(config, workdir)
   result, sources = run_seeds(config, workdir, trained["episodes"])
@@ -644,7 +654,7 @@ def test_a_missing_or_stale_selection_is_refused_with_one_line(seeded, tmp_path)
   workdir = str(tmp_path / "run")
   shutil.copytree(seeded["workdir"], workdir)
   config = tiny_config()
-  config.savi.train.seeds = (3, 1, 5)                # a seed more than the selection was made among
+  config.pretrain.train_seeds = (3, 1, 5)            # a seed more than the selection was made among
   rundir.save_config(config, workdir)
   with pytest.raises(UserError, match=r"selected among seeds \(1, 3\).*run the pretrain stage again"):
     savi_encoder.load_encoder(workdir)
@@ -676,10 +686,11 @@ def test_selection_takes_the_last_evaluation_ties_to_the_lower_seed_and_nan_last
       history_lib.record(rundir.seed_dir(root, seed), "val_metrics", step, {"fg_ari": ari, "recon_mse": ari}, step,
                          keys=("fg_ari",))
   steps = {seed: 20 for seed in finals}
-  chosen = pretrain.select_seed(config, root, steps, pretrain.SAVI_SELECTION, "SAVi")
+  fg_ari = encoders.get("savi").model.selection
+  chosen = pretrain.select_seed(config, root, steps, fg_ari, "SAVi")
   assert chosen["selected_seed"] == 2                      # 4's 0.9 was not its last; 2 and 4 tie at 0.4; NaN last
   assert rundir.load_selection(root) == chosen
-  lower = pretrain.select_seed(config, root, steps, pretrain.Selection("recon_mse", False, "MSE"), "AE")
+  lower = pretrain.select_seed(config, root, steps, encoders.Selection("recon_mse", False, "MSE"), "AE")
   assert lower["selected_seed"] == 2                       # lower is better: 2 and 4 tie at 0.4, NaN still last
   with pytest.raises(UserError, match="seed 4 has no validation FG-ARI at its last step 30"):
-    pretrain.select_seed(config, root, {**steps, 4: 30}, pretrain.SAVI_SELECTION, "SAVi")
+    pretrain.select_seed(config, root, {**steps, 4: 30}, fg_ari, "SAVi")

@@ -20,6 +20,7 @@ from roboshape.baselines import vit
 from roboshape.errors import UserError
 from roboshape.models.encoder import FrozenEncoder
 
+MIN_SIDE = 16      # the smallest frame side the network takes (one 16 x 16 patch)
 _FILES = {"vits16": "dino_deitsmall16_pretrain", "vitb16": "dino_vitbase16_pretrain"}
 _NAMES = {"vits16": "DINO ViT-S/16", "vitb16": "DINO ViT-B/16"}
 
@@ -82,8 +83,8 @@ def load_encoder(cfg, resolution: int) -> FrozenEncoder:
     raise UserError(f"unknown DINO arch {cfg.arch!r}; choose one of {', '.join(vit.ARCHS)}")
   input_size = int(cfg.get("input_size", 224))
   side = input_size or resolution
-  if side < 16:
-    raise UserError(f"DINO needs frames of at least 16 x 16 pixels, got {side}")
+  if side < MIN_SIDE:
+    raise UserError(f"DINO needs frames of at least {MIN_SIDE} x {MIN_SIDE} pixels, got {side}")
   patch_tokens = bool(cfg.get("patch_tokens", False))
   path = os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
   model, params = load_params(path, cfg.arch)

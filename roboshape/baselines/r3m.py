@@ -20,6 +20,7 @@ from roboshape.baselines import resnet
 from roboshape.errors import UserError
 from roboshape.models.encoder import FrozenEncoder
 
+MIN_SIDE = 32      # the smallest input side the network takes
 DOWNLOAD_PAGE = "https://github.com/facebookresearch/r3m (load_r3m downloads it; or fetch model.pt by hand)"
 _PREFIX = "module.convnet."
 _NAMES = {"resnet18": "R3M ResNet-18", "resnet34": "R3M ResNet-34", "resnet50": "R3M ResNet-50"}
@@ -75,8 +76,8 @@ def load_encoder(cfg, resolution: int) -> FrozenEncoder:
   if cfg.arch not in resnet.ARCHS:
     raise UserError(f"unknown R3M arch {cfg.arch!r}; choose one of {', '.join(resnet.ARCHS)}")
   input_size = int(cfg.get("input_size", 224))
-  if (input_size or resolution) < 32:
-    raise UserError(f"R3M needs inputs of at least 32 x 32 pixels, got {input_size or resolution}")
+  if (input_size or resolution) < MIN_SIDE:
+    raise UserError(f"R3M needs inputs of at least {MIN_SIDE} x {MIN_SIDE} pixels, got {input_size or resolution}")
   path = os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
   _, variables = load_params(path, cfg.arch)
   # Inference BatchNorm is an affine map per channel: folded into the convs once here, it costs nothing per step.

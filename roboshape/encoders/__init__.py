@@ -1,23 +1,54 @@
 """The encoder registry: every frozen encoder a policy can be trained on, registered by name.
 
-An encoder is one module in this package that calls `register(Kind(...))` when imported: its name, the observation
-keys its step reads (`inputs`, any of OBSERVATION_KEYS), whether it has a pretraining stage trained in the run's
-workdir, and `build(config, workdir) -> FrozenEncoder`. Configs, the grid, the feature cache, closed-loop
-evaluation and the report all take any registered name. Importing this package is cheap: each `build` imports
-what it needs (JAX, torch, the model) only when called.
+An encoder is one module that calls `register(Kind(...))` when imported, and its Kind is the only place that
+says what the encoder is and needs: its name, the observation keys its step reads (`inputs`, any of
+OBSERVATION_KEYS), its pretraining stage and the model that stage trains, the config sections it reads and their
+checks, whether it is a baseline, and `build(config, workdir) -> FrozenEncoder`. Configs, the config check, the
+stage wiring, the grid, the feature cache, closed-loop evaluation and the report all ask the registry and take any
+registered name. Importing this package is cheap: each `build` and `check` imports what it needs (JAX, torch, the
+model) only when called.
 
 Adding an encoder (README.md, "Adding an encoder"): a module here with its `Kind`, its name in `_MODULES`, and
-`configs/{push,pick,place}_<name>.py`.
+`configs/{push,pick,place}_<name>.py` (a module elsewhere registers one when it is imported:
+tests/toy_encoder.py).
 """
 import dataclasses
 import importlib
-from typing import Callable, Dict, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 from roboshape.errors import UserError
 from roboshape.sim.spec import CAMERA_KEYS
 
 # What the simulator workers and the dataset provide per step (roboshape/data/rlds.py, roboshape/sim/worker.py).
 OBSERVATION_KEYS = CAMERA_KEYS + ("state",)
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+  """How the pretrain stage picks one of several seeds' models: by `metric` of each one's final validation."""
+  metric: str                    # a key of the validation's metrics (the encoder's evaluator), e.g. "fg_ari"
+  higher_is_better: bool
+  name: str                      # the metric in messages and figures ("FG-ARI")
+
+
+@dataclasses.dataclass(frozen=True)
+class PretrainModel:
+  """What the pretraining loop (roboshape/train/pretrain.py) needs of the model it trains for an encoder.
+
+  Attributes:
+    build: config -> the Flax module, from the encoder's own config section, env.resolution and the pretrain
+      section (a depth output when pretrain.train.depth_weight > 0). It has an `input_pool` attribute, and its apply
+      on float video [B, L, H, W, 3] in [0, 1] (rng stream "slots" given, used or not) returns recon
+      [B, L, h, w, 3] with h = H / input_pool, and depth [B, L, h, w] (metres) when it predicts depth.
+    selection: how the best of several seeds (pretrain.train_seeds) is chosen, by a metric of the encoder's
+      evaluator (Kind.evaluator).
+    loss: (module, outputs, frames float [B, L, H, W, 3], depth uint16 [B, L, H, W] or None, depth_weight) ->
+      (loss, {term: value}), what the train step minimises; None: the reconstruction MSE of the pretraining loop
+      (roboshape/train/pretrain.py, reconstruction_loss).
+  """
+  build: Callable
+  selection: Selection
+  loss: Optional[Callable] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,14 +59,27 @@ class Kind:
     name: the config's `encoder` value and the column name in tables.
     inputs: observation keys the encoder's step reads, e.g. ("image",) or ("state",).
     pretrain: the module whose `run(config, workdir, make_validation)` is the `pretrain` stage that trains it in
-      the run's workdir ("roboshape.train.pretrain" for SAVi); "" for an encoder built from fixed weights or from
-      no weights.
+      the run's workdir ("roboshape.train.pretrain", the pretraining loop, which trains `model`); "" for an encoder
+      built from fixed weights or from no weights.
     build: (config, workdir) -> roboshape.models.encoder.FrozenEncoder.
     title: the name tables print ("SAVi").
     description: one line for the README and error messages.
     evaluator: for an encoder with a pretrain stage, the module (in roboshape/eval/) whose
       `validation(config, root, model, episodes)` scores it during pretraining ("roboshape.eval.slots" for SAVi:
       FG-ARI and mIoU); "" for none. roboshape/stages.py hands it to the pretrain stage.
+    model: what the pretraining loop trains for it (None for an encoder without a pretrain stage).
+    sections: the config sections it reads beyond those every run reads, e.g. ("pretrain", "savi"):
+      roboshape/config_check.py checks them for this encoder alone, so a value only another encoder needs (SAVi's
+      decoder at env.resolution=32) never refuses its runs.
+    check: config -> None, raising UserError "<field>=<value>: use ..." for the first bad field of its own
+      sections: their ranges (roboshape/ranges.py, declared in its module) and the constraints between them and
+      the frames; config_check runs it before any stage, the pretraining loop when it starts. None: nothing to
+      check.
+    baseline: a comparison for the encoder under study (SAVi, the one registered with False): a grid's run of it
+      that fails on bad input (e.g. absent weights) is skipped and said in the report, where a failure of the
+      encoder under study stops the grid.
+    slot_videos: its closed-loop videos also show its slot decomposition beside each frame
+      (roboshape/eval/videos.py, SaviSlotVideo).
   """
   name: str
   inputs: Tuple[str, ...]
@@ -44,6 +88,11 @@ class Kind:
   title: str
   description: str
   evaluator: str = ""
+  model: Optional[PretrainModel] = None
+  sections: Tuple[str, ...] = ()
+  check: Optional[Callable] = None
+  baseline: bool = True
+  slot_videos: bool = False
 
   def __post_init__(self):
     unknown = [k for k in self.inputs if k not in OBSERVATION_KEYS]

@@ -1,12 +1,29 @@
 """`ae`: a holistic frame autoencoder pretrained on the task's frames exactly as SAVi is, then frozen (one token per
 frame): the in-domain baseline that holds pretraining equal and takes the objects away (roboshape/models/ae.py,
-roboshape/train/pretrain_ae.py). Served here from its checkpoint's params (no optimizer state is read)."""
+trained by roboshape/train/pretrain.py). Served here from its checkpoint's params (no optimizer state is read).
+
+The ranges of the ae section are declared here (RANGES) and checked by `check`, with its fit to the frames.
+"""
 import functools
 import os
 
 from roboshape import encoders
+from roboshape import ranges
 from roboshape import rundir
 from roboshape.encoders import savi as savi_encoder
+from roboshape.errors import UserError
+
+RANGES = (ranges.Int("ae.latent_size", 0, "the AE's token width; 0: savi.slot_size"),) + savi_encoder.frame_ranges("ae")
+
+
+def check(config) -> None:
+  """Raises UserError for the first bad field of the ae section: RANGES, a token width >= 1, then its fit to the
+  frames (roboshape.models.ae.check_config)."""
+  from roboshape.models import ae  # pylint: disable=import-outside-toplevel
+  ranges.check(config, RANGES)
+  if ae.latent_size(config) < 1:
+    raise UserError(f"ae.latent_size={ae.latent_size(config)} must be >= 1 (0: savi.slot_size).")
+  ae.check_config(config.ae, int(config.env.resolution))
 
 
 def load_encoder(workdir: str, config=None):
@@ -16,7 +33,7 @@ def load_encoder(workdir: str, config=None):
   from roboshape.models import ae
   from roboshape.models.encoder import FrozenEncoder
   config = config or rundir.load_config(workdir)
-  model = ae.build_model(config.savi, ae.latent_size(config), int(config.env.resolution))
+  model = ae.model_from_config(config)
   params, step, directory = savi_encoder.restore(config, workdir, model, rundir.ae_dir(workdir), "AE")
   return FrozenEncoder(
       name="ae", params=params, step=functools.partial(ae.frozen_step, model), init_state=lambda batch_size: (),
@@ -28,8 +45,16 @@ def _build(config, workdir: str):
   return load_encoder(workdir)
 
 
+def _model(config):
+  from roboshape.models import ae  # pylint: disable=import-outside-toplevel
+  return ae.model_from_config(config)
+
+
 encoders.register(encoders.Kind(
-    name="ae", inputs=("image",), pretrain="roboshape.train.pretrain_ae", build=_build, title="AE",
+    name="ae", inputs=("image",), pretrain="roboshape.train.pretrain", build=_build, title="AE",
     description="a frame autoencoder with SAVi's CNN and decoder, pretrained like SAVi on the task's frames "
                 "(one latent per frame; control: in-domain pretraining without objects)",
-    evaluator="roboshape.eval.reconstruction"))
+    evaluator="roboshape.eval.reconstruction",
+    model=encoders.PretrainModel(build=_model, selection=encoders.Selection("recon_mse", False,
+                                                                             "reconstruction MSE")),
+    sections=("pretrain", "ae"), check=check))

@@ -1,5 +1,39 @@
-"""R3M and DINO: holistic encoders from their official torch checkpoints (roboshape/baselines)."""
+"""R3M and DINO: holistic encoders from their official torch checkpoints (roboshape/baselines).
+
+Each reads its own config section (baselines.r3m, baselines.dino), checked by its `check`: a known architecture and
+frames at least the network's smallest side.
+"""
 from roboshape import encoders
+from roboshape import ranges
+from roboshape.errors import UserError
+
+
+def _check_section(config, name: str, archs, min_side: int) -> None:
+  """baselines.<name>: a known architecture and frames at least `min_side` pixels a side."""
+  section = f"baselines.{name}"
+  ranges.check(config, (ranges.Choice(f"{section}.arch", tuple(archs), f"the {name.upper()} network"),
+                        ranges.Int(f"{section}.input_size", 0, "the side frames are resized to; 0: their own")))
+  input_size = int(config.baselines[name].input_size)
+  side = input_size or config.env.resolution
+  if side < min_side:
+    raise UserError(f"{section}.input_size={input_size} gives {side}x{side} inputs; {name.upper()} needs at least "
+                    f"{min_side}: set it to 0 with env.resolution >= {min_side}, or to 224.")
+
+
+def check_r3m(config) -> None:
+  """The baselines.r3m section (imports the network's module, JAX, without starting a backend)."""
+  # pylint: disable=import-outside-toplevel
+  from roboshape.baselines import r3m
+  from roboshape.baselines import resnet
+  _check_section(config, "r3m", resnet.ARCHS, r3m.MIN_SIDE)
+
+
+def check_dino(config) -> None:
+  """The baselines.dino section (imports the network's module, JAX, without starting a backend)."""
+  # pylint: disable=import-outside-toplevel
+  from roboshape.baselines import dino
+  from roboshape.baselines import vit
+  _check_section(config, "dino", vit.ARCHS, dino.MIN_SIDE)
 
 
 def _r3m(config, workdir: str):
@@ -16,7 +50,9 @@ def _dino(config, workdir: str):
 
 encoders.register(encoders.Kind(
     name="r3m", inputs=("image",), pretrain="", build=_r3m, title="R3M",
-    description="R3M ResNet from the official weights (one global token)"))
+    description="R3M ResNet from the official weights (one global token)",
+    sections=("baselines.r3m",), check=check_r3m))
 encoders.register(encoders.Kind(
     name="dino", inputs=("image",), pretrain="", build=_dino, title="DINO",
-    description="DINO ViT from the official weights (the CLS token, optionally the patch tokens)"))
+    description="DINO ViT from the official weights (the CLS token, optionally the patch tokens)",
+    sections=("baselines.dino",), check=check_dino))

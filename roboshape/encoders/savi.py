@@ -4,17 +4,61 @@ frozen from its checkpoint's params (no optimizer state is read).
   model, params, step = load(workdir)      # the SAVi module (roboshape/models/savi.py) and its newest params
   enc = load_encoder(workdir)              # a FrozenEncoder over K slots [B, K, D] per frame
 
-With savi.train.seeds = (s1, s2, ...) the SAVi served is the seed the pretrain stage selected
+With pretrain.train_seeds = (s1, s2, ...) the SAVi served is the seed the pretrain stage selected
 (<workdir>/savi/selected.json, roboshape/train/pretrain.py), from <workdir>/savi/seed_<s>/checkpoints; the encoder's
 identity names that folder, so a new selection changes it and the feature caches and policies made with another
-seed are refused. With seeds = () it is <workdir>/savi/checkpoints, as before seeds existed.
+seed are refused. With seeds = () it is <workdir>/savi/checkpoints.
+
+The ranges of the savi section are declared here (RANGES, and `frame_ranges` for the frame encoder and decoder the
+AE shares) and checked by `check`, with SAVi's modes and its fit to the frames (roboshape/models/savi.py).
 """
 import functools
 import os
 
 from roboshape import encoders
+from roboshape import ranges
 from roboshape import rundir
 from roboshape.errors import UserError
+
+
+def frame_ranges(name: str) -> tuple:
+  """The ranges of a frame model's pool, CNN encoder and spatial-broadcast decoder in config section `name` (savi,
+  ae)."""
+  out = [ranges.Int(f"{name}.pool", 1, "the factor frames are average-pooled by, a divisor of env.resolution")]
+  for part, what in (("encoder", "the CNN's"), ("decoder", "the decoder's")):
+    out.append(ranges.Ints(f"{name}.{part}.features", 1, f"channels of each {part} layer"))
+    out.append(ranges.Ints(f"{name}.{part}.strides", 1, f"one stride per {name}.{part}.features layer",
+                           length_of=f"{name}.{part}.features"))
+    out.append(ranges.Int(f"{name}.{part}.kernel_size", 1, f"{what} kernel side"))
+  out += [ranges.Int(f"{name}.encoder.mlp_size", 1, "the encoder MLP's width"),
+          ranges.Int(f"{name}.encoder.output_size", 1, "the encoder's feature width"),
+          ranges.Int(f"{name}.decoder.grid_size", 0, "the broadcast grid's side; 0: automatic")]
+  return tuple(out)
+
+
+RANGES = (
+    ranges.Int("savi.num_slots", 1, "slots per frame"),
+    ranges.Int("savi.slot_size", 1, "the width of a slot, a multiple of savi.predictor.num_heads"),
+    ranges.Int("savi.num_iterations", 1, "slot-attention iterations per frame"),
+    ranges.Int("savi.slot_mlp_size", 0, "the slot MLP's width; 0: no MLP"),
+    ranges.Int("savi.predictor.num_heads", 1, "the predictor's attention heads"),
+    ranges.Int("savi.predictor.mlp_size", 1, "the predictor MLP's width"),
+    ranges.Flag("savi.predictor.identity_init", "the predictor starts as LayerNorm"),
+    ranges.Ints("savi.eval.background_ids", 0, "segmentation ids FG-ARI and mIoU ignore", empty_ok=True),
+    ranges.Int("savi.eval.figure_frames", 0, "frames in each validation figure"),
+) + frame_ranges("savi")
+
+
+def check(config) -> None:
+  """Raises UserError for the first bad field of the savi section: RANGES, then SAVi's modes and fit to the frames
+  (roboshape.models.savi.check_config, which imports JAX but starts no backend), and heads that divide the slot."""
+  from roboshape.models import savi  # pylint: disable=import-outside-toplevel
+  ranges.check(config, RANGES)
+  c = config.savi
+  savi.check_config(c, int(config.env.resolution))
+  if c.slot_size % c.predictor.num_heads:
+    raise UserError(f"savi.predictor.num_heads={c.predictor.num_heads} does not divide savi.slot_size="
+                    f"{c.slot_size}: use a divisor of the slot size.")
 
 
 def abstract_params(model, resolution: int):
@@ -31,20 +75,20 @@ def abstract_params(model, resolution: int):
 
 def trained_dir(config, workdir: str, stage_dir: str, title: str) -> str:
   """The folder of the model a pretrain stage serves from `stage_dir` (savi_dir, ae_dir): stage_dir itself for
-  savi.train.seeds = () (or a config.json written before the field), else the folder of the seed its
-  selected.json names; a UserError saying to run the pretrain stage when there is no selection of these seeds."""
-  seeds = tuple(int(s) for s in config.savi.train.get("seeds", ()))
-  if not seeds:
+  pretrain.train_seeds = (), else the folder of the seed its selected.json names; a UserError saying to run the
+  pretrain stage when there is no selection of these seeds."""
+  seeds = rundir.train_seeds(config, "pretrain")
+  if seeds == (None,):
     return stage_dir
   selection = rundir.load_selection(stage_dir)
   command = launch_command(config, workdir)
   path = rundir.selection_path(stage_dir)
   if selection is None:
     raise UserError(f"no {title} seed is selected yet ({path} is missing): run the pretrain stage to train "
-                    f"savi.train.seeds={seeds} to the end ({command}).")
+                    f"pretrain.train_seeds={seeds} to the end ({command}).")
   chosen_among = sorted(int(s["seed"]) for s in selection["seeds"])
   if chosen_among != sorted(seeds):
-    raise UserError(f"{path} selected among seeds {tuple(chosen_among)}, the config trains savi.train.seeds="
+    raise UserError(f"{path} selected among seeds {tuple(chosen_among)}, the config trains pretrain.train_seeds="
                     f"{seeds}: run the pretrain stage again ({command}).")
   return rundir.seed_dir(stage_dir, int(selection["selected_seed"]))
 
@@ -57,7 +101,7 @@ def launch_command(config, workdir: str) -> str:
 
 def restore(config, workdir: str, model, stage_dir: str, title: str):
   """(params, step, checkpoint directory) of the newest checkpoint of `model` in <trained_dir>/checkpoints that
-  restores (`trained_dir`: the selected seed's folder with savi.train.seeds); a UserError saying how to make one
+  restores (`trained_dir`: the selected seed's folder with pretrain.train_seeds); a UserError saying how to make one
   when there is none."""
   from roboshape import checkpoint  # pylint: disable=import-outside-toplevel
   directory = rundir.checkpoints(trained_dir(config, workdir, stage_dir, title))
@@ -73,7 +117,7 @@ def load(workdir: str, config=None):
   workdir's config.json when None."""
   from roboshape.models import savi  # pylint: disable=import-outside-toplevel
   config = config or rundir.load_config(workdir)
-  model = savi.build_model(config.savi, int(config.env.resolution))
+  model = savi.model_from_config(config)
   params, step, _ = restore(config, workdir, model, rundir.savi_dir(workdir), "SAVi")
   return model, params, step
 
@@ -89,7 +133,7 @@ def load_encoder(workdir: str, config=None):
   from roboshape.models import savi
   from roboshape.models.encoder import FrozenEncoder
   config = config or rundir.load_config(workdir)
-  model = savi.build_model(config.savi, int(config.env.resolution))
+  model = savi.model_from_config(config)
   params, step, directory = restore(config, workdir, model, rundir.savi_dir(workdir), "SAVi")
   init = savi.initial_slots(model, params, 1)[0]
   return FrozenEncoder(
@@ -103,7 +147,14 @@ def _build(config, workdir: str):
   return load_encoder(workdir)
 
 
+def _model(config):
+  from roboshape.models import savi  # pylint: disable=import-outside-toplevel
+  return savi.model_from_config(config)
+
+
 encoders.register(encoders.Kind(
     name="savi", inputs=("image",), pretrain="roboshape.train.pretrain", build=_build, title="SAVi",
     description="slot attention for video, pretrained on the task's frames (K slots per frame)",
-    evaluator="roboshape.eval.slots"))
+    evaluator="roboshape.eval.slots",
+    model=encoders.PretrainModel(build=_model, selection=encoders.Selection("fg_ari", True, "FG-ARI")),
+    sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True))

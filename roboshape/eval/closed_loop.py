@@ -192,8 +192,9 @@ def policy_fingerprint(workdir: str, train_seed=None, control=None) -> str:
 
 
 def _slot_video_fn(config, workdir):
-  """The SAVi slot-decomposition video maker (frames -> frames), for SAVi runs only."""
-  if config.encoder != "savi":
+  """The SAVi slot-decomposition video maker (frames -> frames), for encoders registered with slot videos only."""
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  if not encoders.get(config.encoder).slot_videos:
     return None
   return videos.SaviSlotVideo(workdir)
 

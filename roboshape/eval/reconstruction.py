@@ -1,7 +1,8 @@
 """The AE's evaluator: reconstruction MSE (and depth MSE) of a frame autoencoder on validation episodes.
 
-  metrics = evaluate(model, params, episodes, frames=config.savi.eval.frames)
-  validation = validation(config, root, model, episodes)   # what the pretrain stage runs every savi.eval.every steps
+  metrics = evaluate(model, params, episodes, frames=config.pretrain.eval.frames)
+  validation = validation(config, root, model, episodes)   # what the pretrain stage runs every pretrain.eval.every
+                                                           # steps
 """
 import functools
 from typing import Dict, Sequence
@@ -38,9 +39,9 @@ def evaluate(model, params, episodes: Sequence[Dict[str, np.ndarray]], frames: i
 
 
 def validation(config, root: str, model, episodes: Sequence[Dict[str, np.ndarray]]) -> pretrain.Validation:
-  """The AE's validation during pretraining: `evaluate` on the first config.savi.eval.episodes of `episodes`."""
+  """The AE's validation during pretraining: `evaluate` on the first pretrain.eval.episodes of `episodes`."""
   del root
-  ec = config.savi.eval
+  ec = config.pretrain.eval
   return pretrain.Validation(
       run=lambda params, step: evaluate(model, params, episodes[:ec.episodes], ec.frames),
       keys=("recon_mse",),

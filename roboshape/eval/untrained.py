@@ -1,11 +1,12 @@
-"""A run workdir with randomly initialised SAVi and policy weights, for speed measurements and rollout tests.
+"""A run workdir with randomly initialised encoder and policy weights, for speed measurements and rollout tests.
 
-  untrained.write_run(config, workdir)        # config.encoder must be "savi"
+  untrained.write_run(config, workdir)        # any registered encoder; one without a pretrain stage as it is
   policy = roboshape.train.bc.load_policy(workdir)
 
-Writes exactly what the pretrain and train_policy stages leave behind (config.json, savi/checkpoints,
-policy/checkpoints, policy/norm_stats.json with identity normalisation), so the real loading path, the real
-`Policy` and the SAVi slot videos run on it; only the weights are untrained. Speed does not depend on them.
+Writes exactly what the pretrain and train_policy stages leave behind (config.json, the pretrained encoder's
+<encoder>/checkpoints when it has a pretrain stage, policy/checkpoints, policy/norm_stats.json with identity
+normalisation), so the real loading path, the real `Policy` and SAVi's slot videos run on it; only the weights
+are untrained. Speed does not depend on them.
 """
 import json
 import os
@@ -13,31 +14,30 @@ import os
 import jax
 import numpy as np
 
-from roboshape.errors import UserError
-
 
 def write_run(config, workdir: str, seed: int = 0) -> str:
-  """Writes the untrained SAVi + policy run of `config` into `workdir`; returns `workdir`."""
+  """Writes the untrained encoder + policy run of `config` into `workdir`; returns `workdir`."""
   # pylint: disable=import-outside-toplevel
+  from roboshape import encoders
   from roboshape import rundir
   from roboshape.checkpoint import Checkpointer
   from roboshape.models import policy as policy_lib
   from roboshape.train import bc
   from roboshape.train import pretrain
-  if config.encoder != "savi":
-    raise UserError(f"untrained runs exist for SAVi only, not {config.encoder!r}.")
   config = config.copy_and_resolve_references()
-  config.savi.train.seeds = ()          # one SAVi, in savi/checkpoints: no seed to select among
+  config.pretrain.train_seeds = ()      # one model, in <encoder>/checkpoints: no seed to select among
   rundir.save_config(config, workdir)
-  comp = pretrain.compiled(config)
-  r = config.env.resolution
-  # Jitted inits (one compilation each) are faster than op-by-op ones; a one-frame clip has the same params.
-  savi_state = jax.jit(lambda key: comp.init_state(key, (1, 1, r, r, 3)))(jax.random.key(seed))
-  with Checkpointer(rundir.checkpoints(rundir.savi_dir(workdir))) as ckpt:
-    ckpt.save(0, savi_state)
+  if encoders.get(config.encoder).model is not None:
+    comp = pretrain.compiled(config)
+    r = config.env.resolution
+    # Jitted inits (one compilation each) are faster than op-by-op ones; a one-frame clip has the same params.
+    encoder_state = jax.jit(lambda key: comp.init_state(key, (1, 1, r, r, 3)))(jax.random.key(seed))
+    with Checkpointer(rundir.checkpoints(rundir.pretrain_dir(workdir, config.encoder))) as ckpt:
+      ckpt.save(0, encoder_state)
+  encoder = encoders.build_encoder(config, workdir)
   net = policy_lib.net_from_config(config.policy)
   optimizer = bc.make_optimizer(config.policy.train)
-  state = jax.jit(lambda: bc.init_state(net, optimizer, (1, 1, comp.model.num_slots, comp.model.slot_size), seed))()
+  state = jax.jit(lambda: bc.init_state(net, optimizer, (1, 1, encoder.num_tokens, encoder.token_dim), seed))()
   with Checkpointer(rundir.checkpoints(rundir.policy_dir(workdir))) as ckpt:
     ckpt.save(0, state)
   dim = config.policy.action_dim

@@ -1,15 +1,15 @@
 """AE: a holistic frame autoencoder built from SAVi's own parts, the in-domain baseline without objects.
 
-Per frame, independently (no slots, no recurrence): SAVi's CNN encoder (savi.CNNEncoder, with SAVi's input pooling)
-gives a feature map; it is average-pooled to the decoder's broadcast grid (g x g, 8 x 8 in every variant), flattened
+Per frame, independently (no slots, no recurrence): SAVi's CNN encoder (savi.CNNEncoder, with input pooling) gives
+a feature map; it is average-pooled to the decoder's broadcast grid (g x g, 8 x 8 in every variant), flattened
 and mapped by an MLP (LayerNorm, Dense, ReLU, Dense) to one latent vector of `latent_size`. SAVi's spatial-broadcast
-decoder (savi.SpatialBroadcastDecoder, the same layer sizes, position embedding and depth output) decodes that
-latent as a single "slot" with per-pixel RGB (rgb="spatial"): its mask, a softmax over one slot, is 1 everywhere,
-so the reconstruction is the decoder's RGB.
+decoder (savi.SpatialBroadcastDecoder, with its position embedding and depth output) decodes that latent as a single
+"slot" with per-pixel RGB (rgb="spatial"): its mask, a softmax over one slot, is 1 everywhere, so the reconstruction
+is the decoder's RGB. Its sizes are the config's ae section, which defaults to SAVi's.
 
-  model = build_model(config.savi, latent_size, resolution)
+  model = model_from_config(config)       # or build_model(config.ae, latent_size, resolution, depth)
   out = model.apply({"params": params}, video)          # video float [B, T, H, W, 3] in [0, 1]
-  out["latent"] [B, T, D], out["recon"] [B, T, h, w, 3] (and out["depth"] [B, T, h, w]), h = H / savi.pool
+  out["latent"] [B, T, D], out["recon"] [B, T, h, w, 3] (and out["depth"] [B, T, h, w]), h = H / ae.pool
 
   latent = model.apply({"params": params}, frames, method=AE.encode)  # frames [B, H, W, 3] -> [B, D]
   latents, () = frozen_step(model, params, (), frames_uint8)           # the frozen encoder's step: [B, 1, D]
@@ -24,6 +24,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from roboshape.errors import UserError
 from roboshape.models import layers
 from roboshape.models import savi
 
@@ -92,7 +93,7 @@ class AE(nn.Module):
 
 
 def latent_size(config) -> int:
-  """D: config.ae.latent_size, or config.savi.slot_size when it is 0."""
+  """D: config.ae.latent_size, or config.savi.slot_size when it is 0 (a token as wide as SAVi's slots)."""
   return int(config.ae.latent_size) or int(config.savi.slot_size)
 
 
@@ -102,10 +103,24 @@ def frozen_step(model: AE, params, carry, frames: jax.Array):
   return latents[:, None, :], carry
 
 
-def build_model(savi_config, latent_size: int, resolution: int) -> AE:  # pylint: disable=redefined-outer-name
-  """The AE over the frames `config.savi` describes (its encoder, decoder, pool and depth weight; see
-  configs/common.py:savi_config), with a latent of `latent_size`, for square frames of `resolution` pixels a side."""
-  c = savi_config
+def check_config(ae_config, resolution: int) -> None:
+  """Raises UserError, "ae.<field>=<value>: use ...", unless a `config.ae` section builds an AE for square frames of
+  `resolution` pixels a side: savi.check_frames, and encoder features that pool evenly to the decoder's grid. (Its
+  ranges are declared with the encoder, roboshape/encoders/ae.py.)"""
+  c = ae_config
+  savi.check_frames(c, "ae", resolution)
+  side = feature_side(resolution, savi.input_pool(c), c.encoder.strides)
+  grid = savi.decoder_grid_size(c, resolution)
+  if side > grid and side % grid:
+    raise UserError(f"the AE pools its {side}x{side} encoder features to the decoder's {grid}x{grid} grid, which "
+                    "needs a multiple of it: change ae.encoder.strides or ae.decoder.strides.")
+
+
+def build_model(ae_config, latent_size: int,  # pylint: disable=redefined-outer-name
+                resolution: int, depth: bool = False) -> AE:
+  """The AE a `config.ae` section describes (its pool, encoder and decoder; see configs/common.py:ae_config), with
+  a latent of `latent_size`, for square frames of `resolution` pixels a side, with a depth output when `depth`."""
+  c = ae_config
   return AE(
       latent_size=int(latent_size),
       encoder_features=tuple(c.encoder.features), encoder_kernel_size=int(c.encoder.kernel_size),
@@ -114,5 +129,10 @@ def build_model(savi_config, latent_size: int, resolution: int) -> AE:  # pylint
       decoder_grid_size=savi.decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), decoder_position=str(c.decoder.position),
-      decoder_depth=savi.depth_weight(c) > 0,
-      input_pool=savi.input_pool(c))
+      decoder_depth=bool(depth), input_pool=savi.input_pool(c))
+
+
+def model_from_config(config) -> AE:
+  """The AE of a run's config: its ae section and `latent_size`, for frames of env.resolution, with a depth output
+  when the pretraining weights depth (savi.depth_weight)."""
+  return build_model(config.ae, latent_size(config), int(config.env.resolution), savi.depth_weight(config) > 0)

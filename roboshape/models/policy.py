@@ -173,6 +173,9 @@ class Carry(NamedTuple):
   rng: jax.Array
 
 
+ACTIONS = ("mean", "sample")      # ControlSpec.action: the mixture mean, or a mode drawn by weight
+
+
 @dataclasses.dataclass(frozen=True)
 class ControlSpec:
   """Static settings of the control step.
@@ -234,8 +237,8 @@ class Policy:
                token_dtype=jnp.float32):
     if spec.history > net.max_history:
       raise ValueError(f"control history {spec.history} exceeds the training history {net.max_history}")
-    if spec.action not in ("mean", "sample"):
-      raise ValueError(f"unknown action mode {spec.action!r}: use 'mean' or 'sample'")
+    if spec.action not in ACTIONS:
+      raise ValueError(f"unknown action mode {spec.action!r}: use one of {ACTIONS}")
     self.net, self.params, self.encoder, self.spec = net, params, encoder, spec
     self._norm = (jnp.asarray(norm_scale, jnp.float32), jnp.asarray(norm_offset, jnp.float32))
     self._seed = seed

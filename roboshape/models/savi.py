@@ -6,7 +6,7 @@ the initial slots of frame t+1; a spatial-broadcast decoder reconstructs the fra
 per-slot RGB and alpha masks normalised over the slots. The first frame starts from slots drawn from a learned
 Gaussian.
 
-  model = build_model(config.savi)
+  model = model_from_config(config)       # or build_model(config.savi, resolution, depth)
   out = model.apply({"params": params}, video, rngs={"slots": key})   # video float [B, T, H, W, 3] in [0, 1]
   out["slots"] [B, T, K, D], out["recon"] [B, T, H, W, 3], out["masks"] [B, T, K, H, W], out["rgb"] [B, T, K, H, W, 3]
 
@@ -174,7 +174,7 @@ class Upsample(nn.Module):
     if self.mode == "transpose":
       return nn.ConvTranspose(self.features, kernel, strides=(s, s), padding="SAME", name="conv")(x)
     if self.mode != "subpixel":
-      raise ValueError(f"unknown upsampling {self.mode!r}; use 'subpixel' or 'transpose'.")
+      raise ValueError(f"unknown upsampling {self.mode!r}; use one of {UPSAMPLINGS}.")
     y = nn.Conv(self.features * s * s, kernel, padding="SAME", name="conv")(x)
     b, h, w, _ = y.shape
     y = y.reshape(b, h, w, s, s, self.features).transpose(0, 1, 3, 2, 4, 5)
@@ -354,57 +354,54 @@ class SAVi(nn.Module):
     return out
 
 
-def input_pool(savi_config) -> int:
-  """The factor config.savi.pool by which SAVi average-pools the frames."""
-  return int(savi_config.pool)
+def input_pool(section) -> int:
+  """The factor by which a frame model (SAVi's section, the AE's) average-pools the frames: its `pool` field."""
+  return int(section.pool)
 
 
-def depth_weight(savi_config) -> float:
-  """config.savi.train.depth_weight: the weight of the depth MSE in the loss; the model predicts depth when > 0."""
-  return float(savi_config.train.depth_weight)
+def depth_weight(config) -> float:
+  """config.pretrain.train.depth_weight: the weight of the depth MSE in the pretraining loss; a model pretrained
+  with a weight > 0 predicts depth (SAVi and the AE alike), so it is also built with a depth output to load."""
+  return float(config.pretrain.train.depth_weight)
 
 
-def decoder_grid_size(savi_config, resolution: int) -> int:
-  """The broadcast grid's side: config.savi.decoder.grid_size, or (resolution / pool) / prod(strides) when it is 0."""
-  grid = int(savi_config.decoder.grid_size)
-  return grid if grid > 0 else resolution // input_pool(savi_config) // math.prod(savi_config.decoder.strides)
+def decoder_grid_size(section, resolution: int) -> int:
+  """The broadcast grid's side: the section's decoder.grid_size, or (resolution / pool) / prod(strides) when 0."""
+  grid = int(section.decoder.grid_size)
+  return grid if grid > 0 else resolution // input_pool(section) // math.prod(section.decoder.strides)
+
+
+def check_frames(section, name: str, resolution: int) -> None:
+  """Raises UserError, "<name>.<field>=<value>: use ...", unless the frame model of config section `name` (savi,
+  ae: a pool, a CNN encoder and a spatial-broadcast decoder) models square frames of `resolution` pixels a side:
+  known decoder modes, a pool that divides the frames, a decoder that draws the pooled frames' size."""
+  c = section
+  for field, value, choices in (("decoder.position", c.decoder.position, DECODER_POSITIONS),
+                                ("decoder.upsampling", c.decoder.upsampling, UPSAMPLINGS)):
+    if value not in choices:
+      raise UserError(f"{name}.{field}={value!r}: use one of {', '.join(choices)} (see configs/common.py).")
+  pool = input_pool(c)
+  if pool < 1 or resolution % pool:
+    raise UserError(f"{name}.pool={pool} does not divide env.resolution={resolution}: use a positive divisor of it.")
+  out = decoder_grid_size(c, resolution) * math.prod(c.decoder.strides)
+  if out != resolution // pool:
+    raise UserError(f"{name}.decoder.grid_size={c.decoder.grid_size} with {name}.decoder.strides="
+                    f"{tuple(c.decoder.strides)!r} makes {out}x{out} images, but the model draws "
+                    f"{resolution // pool}x{resolution // pool} frames (env.resolution / {name}.pool): set "
+                    f"{name}.decoder.grid_size=0 (automatic) or change {name}.decoder.strides.")
 
 
 def check_config(savi_config, resolution: int) -> None:
-  """Raises UserError, "savi.<field>=<value>: use ...", unless a `config.savi` section builds a SAVi (and the AE,
-  which shares its encoder, decoder and pool) that models square frames of `resolution` pixels a side: known modes,
-  one stride per layer, iterations >= 1, a slot MLP width >= 0, a pool that divides the frames, a decoder that
-  draws the pooled frames' size, a depth weight >= 0."""
+  """Raises UserError, "savi.<field>=<value>: use ...", unless a `config.savi` section builds a SAVi that models
+  square frames of `resolution` pixels a side: SAVi's own modes, then `check_frames`. (Its ranges are declared with
+  the encoder, roboshape/encoders/savi.py.)"""
   c = savi_config
   for field, value, choices in (("init_mean", c.init_mean, INIT_MEANS),
                                 ("slot_gradient", c.slot_gradient, SLOT_GRADIENTS),
-                                ("decoder.rgb", c.decoder.rgb, DECODER_RGBS),
-                                ("decoder.position", c.decoder.position, DECODER_POSITIONS),
-                                ("decoder.upsampling", c.decoder.upsampling, UPSAMPLINGS)):
+                                ("decoder.rgb", c.decoder.rgb, DECODER_RGBS)):
     if value not in choices:
       raise UserError(f"savi.{field}={value!r}: use one of {', '.join(choices)} (see configs/common.py).")
-  for part in ("encoder", "decoder"):
-    features, strides = tuple(c[part].features), tuple(c[part].strides)
-    if len(features) != len(strides):
-      raise UserError(f"savi.{part}.strides={strides!r} has {len(strides)} entries: use {len(features)} (one "
-                      f"stride per savi.{part}.features layer).")
-  if int(c.slot_mlp_size) < 0:
-    raise UserError(f"savi.slot_mlp_size={c.slot_mlp_size!r}: use an int >= 0 (the slot MLP's width; 0: no MLP).")
-  if int(c.num_iterations) < 1:
-    raise UserError(f"savi.num_iterations={c.num_iterations!r}: use an int >= 1 (slot-attention iterations per "
-                    "frame).")
-  pool = input_pool(c)
-  if pool < 1 or resolution % pool:
-    raise UserError(f"savi.pool={pool} does not divide env.resolution={resolution}: use a positive divisor of it.")
-  out = decoder_grid_size(c, resolution) * math.prod(c.decoder.strides)
-  if out != resolution // pool:
-    raise UserError(f"savi.decoder.grid_size={c.decoder.grid_size} with savi.decoder.strides="
-                    f"{tuple(c.decoder.strides)!r} makes {out}x{out} images, but SAVi models "
-                    f"{resolution // pool}x{resolution // pool} frames (env.resolution / savi.pool): set "
-                    "savi.decoder.grid_size=0 (automatic) or change savi.decoder.strides.")
-  weight = depth_weight(c)
-  if not math.isfinite(weight) or weight < 0:
-    raise UserError(f"savi.train.depth_weight={weight!r}: use a number >= 0 (the weight of the depth MSE).")
+  check_frames(c, "savi", resolution)
 
 
 def parameter_count(savi_config, resolution: int) -> int:
@@ -417,9 +414,9 @@ def parameter_count(savi_config, resolution: int) -> int:
   return sum(math.prod(leaf.shape) for leaf in jax.tree_util.tree_leaves(shapes["params"]))
 
 
-def build_model(savi_config, resolution: int) -> SAVi:
+def build_model(savi_config, resolution: int, depth: bool = False) -> SAVi:
   """The SAVi module a `config.savi` section describes (see configs/common.py:savi_config) for square frames of
-  `resolution` pixels a side."""
+  `resolution` pixels a side, with a depth output when `depth`."""
   c = savi_config
   return SAVi(
       num_slots=int(c.num_slots), slot_size=int(c.slot_size), init_mean=str(c.init_mean),
@@ -432,8 +429,14 @@ def build_model(savi_config, resolution: int) -> SAVi:
       decoder_grid_size=decoder_grid_size(c, resolution), decoder_features=tuple(c.decoder.features),
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.rgb),
-      decoder_position=str(c.decoder.position), decoder_depth=depth_weight(c) > 0,
+      decoder_position=str(c.decoder.position), decoder_depth=bool(depth),
       input_pool=input_pool(c))
+
+
+def model_from_config(config) -> SAVi:
+  """The SAVi of a run's config: its savi section, for frames of env.resolution, with a depth output when the
+  pretraining weights depth (`depth_weight`)."""
+  return build_model(config.savi, int(config.env.resolution), depth_weight(config) > 0)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -1,31 +1,37 @@
-"""The "pretrain" stage: SAVi trained by video reconstruction on the task's demos.
+"""The "pretrain" stage: one training loop for every encoder pretrained in the run's workdir (SAVi, the AE, ...).
 
   python launch.py --config=configs/pick_savi.py:small --config.stages='("pretrain",)' --workdir=runs/pick_savi
-  enc = roboshape.load_encoder("runs/pick_savi")      # served by roboshape/encoders/savi.py: K slots of size D
+  enc = roboshape.load_encoder("runs/pick_savi")      # the encoder, served from what this stage trained
 
-Training: clips of `config.savi.train.clip_length` frames from the dataset's train split, MSE reconstruction, Adam
-with linear warmup, cosine decay and global-norm clipping. The jitted train step shards the batch over the devices
-of a 1-D mesh ("data") and keeps parameters replicated. Writes under <workdir>/savi/: checkpoints/ (orbax; resumed
-after a kill at the same step, with the same data order since batch i of the dataset's deterministic order always
-feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and the validation's metrics),
-val_metrics.json and val_metrics.png (every validation result so far, across resumes, and its curve).
-A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint stays.
+The model is chosen by the run's encoder name: its registration (roboshape/encoders, `Kind.model`) says how the
+model is built from the config, what it minimises (the reconstruction MSE below unless it says otherwise) and how
+the best of several seeds is chosen, and its own config section describes it (config.savi, config.ae). The rest is
+this module's and the same for every model, so they are pretrained alike:
 
-Seeds (`train_seeds`, what the stage runs): with savi.train.seeds = () one run with config.seed writes the above
-into <workdir>/savi/ itself. With savi.train.seeds = (s1, s2, ...) each seed is a run of its own, with config.seed
-set to it (its initialisation and its data order), in <workdir>/savi/seed_<s>/ (the layout above, each resumed
-after a kill as one run is); once every seed is trained, the one with the best FINAL validation FG-ARI (the last
-evaluation in its val_metrics.json, the one at its last training step; ties: the lower seed; a NaN ranks last) is
-recorded in <workdir>/savi/selected.json with every seed's final metrics, and <workdir>/savi/seeds_fg_ari.png
-overlays every seed's FG-ARI curve. roboshape/encoders/savi.py serves the selected seed's checkpoint.
+Settings: config.pretrain, one section for every model (configs/common.py:pretrain_config says why).
+Training: clips of pretrain.train.clip_length frames from the dataset's train split, the reconstruction MSE against
+the frames pooled by the model's input_pool (plus pretrain.train.depth_weight x the depth MSE), Adam with linear
+warmup, cosine decay and global-norm clipping (`make_optimizer`). The jitted train step shards the batch over the
+devices of a 1-D mesh ("data") and keeps parameters replicated. Writes under <workdir>/<encoder>/: checkpoints/
+(orbax; resumed after a kill at the same step, with the same data order since batch i of the dataset's
+deterministic order always feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and the
+validation's metrics), val_metrics.json and val_metrics.png (every validation result so far, across resumes, and
+its curve). A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint
+stays.
+
+Seeds (`train_and_select`, what the stage runs): with pretrain.train_seeds = () one run with config.seed writes the
+above into <workdir>/<encoder>/ itself. With pretrain.train_seeds = (s1, s2, ...) each seed is a run of its own,
+with config.seed set to it (its initialisation and its data order), in <workdir>/<encoder>/seed_<s>/ (the layout
+above, each resumed after a kill as one run is); once every seed is trained, the one with the best FINAL validation
+of the model's selection metric (the last evaluation in its val_metrics.json, the one at its last training step;
+ties: the lower seed; a NaN ranks last) is recorded in <workdir>/<encoder>/selected.json with every seed's final
+metrics, and <workdir>/<encoder>/seeds_<metric>.png overlays every seed's curve of it. The encoder's module serves
+the selected seed's checkpoint (roboshape/encoders/savi.py).
 
 Validation is not this module's: `train` and `run` take `make_validation(config, root, model, episodes) ->
-Validation`, which the stage wiring (roboshape/stages.py) takes from the encoder's evaluator (for SAVi
-roboshape/eval/slots.py: FG-ARI and mIoU of the slot masks, and the decomposition figures in figures/).
-
-The training loop (`fit`), the compiled train step (`Compiled`) and the data (`data_source`) take any
-reconstruction model of the frames, so other encoders pretrained on the same settings reuse them
-(roboshape/train/pretrain_ae.py).
+Validation`, which the stage wiring (roboshape/stages.py) takes from the encoder's evaluator (SAVi's
+roboshape/eval/slots.py: FG-ARI and mIoU of the slot masks and the decomposition figures in figures/; the AE's
+roboshape/eval/reconstruction.py).
 """
 import dataclasses
 import functools
@@ -40,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from roboshape import encoders
 from roboshape import fileio
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
@@ -49,25 +56,51 @@ from roboshape.train import history as history_lib
 from roboshape.train import sharding
 
 
+def model_of(config) -> encoders.PretrainModel:
+  """The model the run's encoder pretrains (its registration's `model`); a UserError for an encoder without one."""
+  kind = encoders.get(config.encoder)
+  if kind.model is None:
+    raise UserError(f"the {kind.name} encoder has no pretrain stage; drop it from --config.stages.")
+  return kind.model
+
+
 def validate_config(config) -> None:
-  """Raises UserError when the SAVi section cannot work with the env's resolution (savi.check_config, also run by
-  roboshape/config_check.py before any stage)."""
-  savi.check_config(config.savi, int(config.env.resolution))
+  """Raises UserError when the encoder's own section cannot work with the env's resolution: its registration's
+  `check`, which roboshape/config_check.py also runs before any stage."""
+  kind = encoders.get(config.encoder)
+  if kind.check is not None:
+    kind.check(config)
 
 
 SAVI_CLIP_NORM = 0.05   # SAVi's max_grad_norm (on its loss, summed over a clip's pixel values)
 ADAM_EPS = 1e-8         # Adam's epsilon (optax's and SAVi's) at that clip
+CLIP_NORM_OF = ("mean", "sum")   # pretrain.train.clip_norm_of: the loss whose gradient pretrain.train.clip_norm bounds
 
 
-def make_optimizer(train_config) -> optax.GradientTransformation:
-  """Adam on a warmup + cosine-decay schedule, after clipping the gradients' global norm to train.clip_norm.
+def values_per_clip(config, input_pool: int) -> int:
+  """The pixel values the loss averages over in one clip: clip_length x h x w x 3, with h = w = env.resolution /
+  input_pool, the side of the frames the model reconstructs."""
+  side = int(config.env.resolution) // int(input_pool)
+  return int(config.pretrain.train.clip_length) * side * side * 3
 
-  The clip applies to the gradient of the loss as `_train_step` reduces it: a mean over the pixel values. Adam's
-  epsilon scales with the clip (ADAM_EPS at SAVI_CLIP_NORM, so 1e-8 at 0.05), which makes a clip scaled together
-  with the loss give the same updates: Adam is blind to the gradients' scale except through epsilon. So SAVi's
-  0.05 on its loss summed over N values per clip is clip_norm = 0.05 / N on the mean (configs/common.py :paper).
-  """
+
+def clip_norm(train_config, values: int) -> float:
+  """The bound on the global norm of the MEAN loss's gradient that train.clip_norm states: itself with
+  train.clip_norm_of = "mean"; with "sum" (a bound on the gradient of the loss summed over the clip's `values`
+  pixel values, which is `values` times larger) divided by `values`."""
   clip = float(train_config.clip_norm)
+  return clip / values if train_config.get("clip_norm_of", "mean") == "sum" else clip
+
+
+def make_optimizer(train_config, values: int) -> optax.GradientTransformation:
+  """Adam on a warmup + cosine-decay schedule, after clipping the gradients' global norm to `clip_norm`.
+
+  The clip applies to the gradient of the loss as `Compiled` reduces it: a mean over the clip's `values` pixel
+  values. Adam's epsilon scales with the clip (ADAM_EPS at SAVI_CLIP_NORM, so 1e-8 at 0.05), which makes a clip
+  scaled together with the loss give the same updates: Adam is blind to the gradients' scale except through
+  epsilon. So SAVi's 0.05 on its loss summed over the values (clip_norm_of="sum") gives SAVi's updates.
+  """
+  clip = clip_norm(train_config, values)
   eps = ADAM_EPS * (clip / SAVI_CLIP_NORM)   # exactly ADAM_EPS at clip 0.05
   return optax.chain(optax.clip_by_global_norm(clip), optax.adam(make_schedule(train_config), eps=eps))
 
@@ -79,21 +112,34 @@ def make_schedule(train_config) -> optax.Schedule:
   return optax.warmup_cosine_decay_schedule(0.0, train_config.learning_rate, warmup, max(steps, warmup + 1), 0.0)
 
 
+def reconstruction_loss(model, out, frames, depth, depth_weight: float):
+  """(loss, {term: value}) of a frame model's outputs `out` on float frames [B, L, H, W, 3] in [0, 1]: the RGB
+  reconstruction MSE against the frames pooled by model.input_pool, a mean over clips, frames, pixels and channels
+  (SAVi's is the sum over a clip's frames, pixels and channels, meaned over clips; train.clip_norm_of says which
+  one the clip is stated for), plus `depth_weight` times the depth MSE in metres when that weight is > 0 (the model
+  then predicts depth, SAVi++'s second target; depth uint16 [B, L, H, W] millimetres must be given)."""
+  target = savi.pool_frames(frames, model.input_pool)
+  terms = {"recon_mse": jnp.mean(jnp.square(out["recon"] - target))}
+  loss = terms["recon_mse"]
+  if depth_weight > 0:
+    metres = savi.pool_frames(depth.astype(jnp.float32)[..., None] / 1000.0, model.input_pool)[..., 0]
+    terms["depth_mse"] = jnp.mean(jnp.square(out["depth"] - metres))
+    loss = loss + depth_weight * terms["depth_mse"]
+  return loss, terms
+
+
 class Compiled:
-  """The model, optimizer and jitted train step of a frame-reconstruction model trained on `config.savi.train`.
+  """The model, optimizer and jitted train step of a run's pretraining: the model its encoder names (`model_of`),
+  trained on `config.pretrain.train` by its loss (`reconstruction_loss` unless it names another)."""
 
-  model: a Flax module with an `input_pool` attribute whose apply on float video [B, L, H, W, 3] in [0, 1] (rng
-  stream "slots" given, used or not) returns recon [B, L, h, w, 3] with h = H / input_pool, and depth [B, L, h, w]
-  (metres) when the savi config's depth weight is > 0. SAVi is one; the AE (roboshape/models/ae.py) another.
-  """
-
-  def __init__(self, model, savi_config):
-    c = savi_config
+  def __init__(self, model, config):
+    tc = config.pretrain.train
     self.model = model
-    self.optimizer = make_optimizer(c.train)
-    self.schedule = make_schedule(c.train)
-    self.dp = sharding.DataParallel(c.train.batch_size)
-    self.depth_weight = savi.depth_weight(c)
+    self.loss = model_of(config).loss or reconstruction_loss
+    self.optimizer = make_optimizer(tc, values_per_clip(config, model.input_pool))
+    self.schedule = make_schedule(tc)
+    self.dp = sharding.DataParallel(tc.batch_size)
+    self.depth_weight = savi.depth_weight(config)
     self.train_step = jax.jit(self._train_step,
                               in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch,
                                             self.dp.replicated),
@@ -107,26 +153,13 @@ class Compiled:
     return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
 
   def _train_step(self, state, video, depth, key):
-    """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, key) -> (state, metrics).
-
-    The loss is the RGB reconstruction MSE, a mean over clips, frames, pixels and channels (SAVi's is the sum over
-    a clip's frames, pixels and channels, meaned over clips; train.clip_norm is stated for the mean, see
-    `make_optimizer`), plus train.depth_weight times the depth MSE (in metres) when that weight is > 0 (the model
-    then predicts depth, SAVi++'s second target; `depth` must be given).
-    """
+    """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, key) -> (state, metrics)."""
     step_key = jax.random.fold_in(key, state["step"])
 
     def loss_fn(params):
       frames = savi.to_float(video)
-      target = savi.pool_frames(frames, self.model.input_pool)
       out = self.model.apply({"params": params}, frames, rngs={"slots": step_key})
-      terms = {"recon_mse": jnp.mean(jnp.square(out["recon"] - target))}
-      loss = terms["recon_mse"]
-      if self.depth_weight > 0:
-        metres = savi.pool_frames(depth.astype(jnp.float32)[..., None] / 1000.0, self.model.input_pool)[..., 0]
-        terms["depth_mse"] = jnp.mean(jnp.square(out["depth"] - metres))
-        loss = loss + self.depth_weight * terms["depth_mse"]
-      return loss, terms
+      return self.loss(self.model, out, frames, depth, self.depth_weight)
 
     (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
     updates, opt_state = self.optimizer.update(grads, state["opt_state"], state["params"])
@@ -141,28 +174,29 @@ def config_from_json(text: str):
   return ml_collections.ConfigDict(json.loads(text))
 
 
-def model_json(config) -> str:
-  """config.savi as JSON without train.seeds (which runs to train, not how one trains): the cache key of the
-  compiled model and train step, the same for every seed."""
-  section = config.savi.to_dict()
-  section["train"].pop("seeds", None)
-  return json.dumps(section, sort_keys=True)
+def compile_key(config) -> str:
+  """The config as JSON without config.seed and pretrain.train_seeds (which run trains, not how one trains): the
+  cache key of the compiled model and train step, the same for every seed."""
+  tree = config.to_dict()
+  tree.pop("seed", None)
+  tree.get("pretrain", {}).pop("train_seeds", None)
+  return json.dumps(tree, sort_keys=True)
 
 
 @functools.lru_cache(maxsize=8)
-def _compiled_for(savi_json: str, resolution: int) -> Compiled:
-  c = config_from_json(savi_json)
-  return Compiled(savi.build_model(c, resolution), c)
+def _compiled_for(key: str) -> Compiled:
+  config = config_from_json(key)
+  return Compiled(model_of(config).build(config), config)
 
 
 def compiled(config) -> Compiled:
-  """The (cached) SAVi model and its jitted train step for `config.savi` at `config.env.resolution`."""
-  return _compiled_for(model_json(config), int(config.env.resolution))
+  """The (cached) model of the run's encoder and its jitted train step for `config`."""
+  return _compiled_for(compile_key(config))
 
 
 @dataclasses.dataclass(frozen=True)
 class Validation:
-  """What `fit` does every savi.eval.every steps (and after the last).
+  """What `fit` does every pretrain.eval.every steps (and after the last).
 
   Attributes:
     run: (params, step) -> metrics {name: float}, written to TensorBoard (val/<name>) and <root>/val_metrics.json.
@@ -183,29 +217,30 @@ MakeValidation = Callable[[Any, str, Any, Sequence[Dict[str, np.ndarray]]], Vali
 def train(config, workdir: str, batches_from: Callable[[int], Iterator[Dict[str, np.ndarray]]],
           val_episodes: Sequence[Dict[str, np.ndarray]] = (),
           make_validation: Optional[MakeValidation] = None, root: Optional[str] = None) -> Dict[str, Any]:
-  """Trains SAVi to `config.savi.train.steps`, resuming from the latest checkpoint in <root>/checkpoints (root:
-  <workdir>/savi when None; `train_seeds` gives each seed's folder).
+  """Trains the run's encoder's model to `config.pretrain.train.steps`, resuming from the latest checkpoint in
+  <root>/checkpoints (root: <workdir>/<encoder> when None; `train_and_select` gives each seed's folder).
 
   batches_from(start_batch) yields the batches from index start_batch on (dicts with video uint8 [B, L, H, W, 3]
-  and episode_seed int [B], and depth uint16 [B, L, H, W] when savi.train.depth_weight > 0).
-  val_episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W], validated by the Validation
-  `make_validation` makes (e.g. roboshape.eval.slots.validation); none without either.
+  and episode_seed int [B], and depth uint16 [B, L, H, W] when pretrain.train.depth_weight > 0).
+  val_episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W] (and depth uint16 [S, H, W]),
+  validated by the Validation `make_validation` makes (e.g. roboshape.eval.slots.validation); none without either.
   Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
   validate_config(config)
-  comp, root = compiled(config), root or rundir.savi_dir(workdir)
+  comp, root = compiled(config), root or rundir.pretrain_dir(workdir, config.encoder)
   validation = None
   if val_episodes and make_validation is not None:
     validation = make_validation(config, root, comp.model, val_episodes)
-  return fit(config, root, comp, batches_from, validation, "SAVi")
+  return fit(config, root, comp, batches_from, validation, encoders.get(config.encoder).title)
 
 
 def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterator[Dict[str, np.ndarray]]],
         validation: Optional[Validation], title: str) -> Dict[str, Any]:
-  """Trains `comp.model` to `config.savi.train.steps` by `comp.train_step`, resuming from <root>/checkpoints.
+  """Trains `comp.model` to `config.pretrain.train.steps` by `comp.train_step`, resuming from <root>/checkpoints.
 
-  Every setting comes from config.savi.train (clip shape, steps, checkpoint and log cadence) and config.savi.eval
-  (validation cadence); TensorBoard scalars go to <root>/tb, validation results to <root>/val_metrics.json.
+  Every setting comes from config.pretrain.train (clip shape, steps, checkpoint and log cadence) and
+  config.pretrain.eval (validation cadence); TensorBoard scalars go to <root>/tb, validation results to
+  <root>/val_metrics.json.
   batches_from: as in `train`. validation: None for none. title: the model's name in messages ("SAVi").
   Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
@@ -213,14 +248,15 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
   from tensorboardX import SummaryWriter
   from tqdm import tqdm
 
-  tc, ec = config.savi.train, config.savi.eval
+  tc, ec = config.pretrain.train, config.pretrain.eval
   history, evals = [], []
   with Checkpointer(rundir.checkpoints(root), keep=tc.keep_checkpoints) as ckpt:
     start = ckpt.latest_step() or 0
     if start >= tc.steps:
       restored, start = ckpt.restore_latest(_abstract_state(comp, config), set_aside=True)
       if start >= tc.steps:
-        print(f"[pretrain] already trained to step {start} >= savi.train.steps={tc.steps}; skipping.", flush=True)
+        print(f"[pretrain] already trained to step {start} >= pretrain.train.steps={tc.steps}; skipping.",
+              flush=True)
         if validation and not any(h["step"] == start for h in history_lib.load(root, "val_metrics")):
           # killed after its last checkpoint, before its last validation: the final evaluation is still owed
           evals.append((start, _validate(validation, restored["params"], start, root, config, title,
@@ -244,7 +280,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
                           f"expects {_clip_shape(config)} [B, L, H, W, 3]: set --config.env.resolution to the "
                           "dataset's.")
         if step == start and comp.depth_weight > 0 and "depth" not in batch:
-          raise UserError("savi.train.depth_weight > 0 needs a dataset with depth: collect one with "
+          raise UserError("pretrain.train.depth_weight > 0 needs a dataset with depth: collect one with "
                           "--config.env.depth=True (into another --config.data.dir), or set the weight to 0.")
         video = comp.dp.put_batch(batch["video"])
         depth = comp.dp.put_batch(batch["depth"]) if comp.depth_weight > 0 else None
@@ -255,8 +291,8 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
           raise UserError(
               f"{title} loss is {metrics['loss']} at step {step} (batch {step}, episode seeds "
               f"{np.asarray(batch['episode_seed']).tolist()}); training stopped, the last good checkpoint "
-              f"(step {ckpt.latest_step()}) is kept in {ckpt.directory}. Lower --config.savi.train.learning_rate "
-              f"or --config.savi.train.clip_norm and run again.")
+              f"(step {ckpt.latest_step()}) is kept in {ckpt.directory}. Lower --config.pretrain.train.learning_rate"
+              f" or --config.pretrain.train.clip_norm and run again.")
         state, done = new_state, step + 1
         history.append((done, metrics["loss"]))
         if done % tc.log_every == 0 or done == tc.steps:
@@ -288,7 +324,7 @@ def _validate(validation: Validation, params, step: int, root: str, config, titl
 
 def _clip_shape(config):
   r = config.env.resolution
-  return (config.savi.train.batch_size, config.savi.train.clip_length, r, r, 3)
+  return (config.pretrain.train.batch_size, config.pretrain.train.clip_length, r, r, 3)
 
 
 def _with_sharding(tree, target):
@@ -302,45 +338,28 @@ def _abstract_state(comp: Compiled, config):
 
 
 def data_source(config, workdir: str):
-  """(batches_from, val_episodes) of the run's dataset (roboshape.data) for `fit`: clips of config.savi.train's
-  shape from the train split (batch i always the same), and the first config.savi.eval.episodes val episodes."""
+  """(batches_from, val_episodes) of the run's dataset (roboshape.data) for `fit`: clips of config.pretrain.train's
+  shape from the train split (batch i always the same), and the first config.pretrain.eval.episodes val
+  episodes."""
   # pylint: disable=import-outside-toplevel
   from roboshape import data as rdata
   from roboshape.data import reader
 
   path = rdata.dataset_path(config, workdir)
   reader.load_state(path)  # a missing dataset is a UserError that says how to make one
-  tc = config.savi.train
+  tc = config.pretrain.train
 
   def batches_from(start: int):
     return reader.clip_batches(path, "train", tc.clip_length, tc.batch_size, seed=config.seed, start_batch=start)
 
-  return batches_from, list(itertools.islice(reader.read_episodes(path, "val"), config.savi.eval.episodes))
+  return batches_from, list(itertools.islice(reader.read_episodes(path, "val"), config.pretrain.eval.episodes))
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Seeds: one run per seed of savi.train.seeds, the best by its final validation served.
-
-
-@dataclasses.dataclass(frozen=True)
-class Selection:
-  """How `train_seeds` ranks the seeds: by `metric` of each seed's final validation, higher or lower better."""
-  metric: str
-  higher_is_better: bool
-  name: str                      # the metric in messages and the figure ("FG-ARI")
-
-
-SAVI_SELECTION = Selection("fg_ari", True, "FG-ARI")
+# Seeds: one run per seed of pretrain.train_seeds, the best by its final validation served.
 
 # source(config) -> (batches_from, val_episodes) of `config`'s seed (its data order): as `data_source`.
 Source = Callable[[Any], Tuple[Callable[[int], Iterator[Dict[str, np.ndarray]]], Sequence[Dict[str, np.ndarray]]]]
-# train_one(config, root) -> `fit`'s result: one run, with config.seed, into the folder root.
-TrainOne = Callable[[Any, str], Dict[str, Any]]
-
-
-def seeds_of(config) -> Tuple[int, ...]:
-  """config.savi.train.seeds as a tuple of ints (() for a config written before the field existed)."""
-  return tuple(int(s) for s in config.savi.train.get("seeds", ()))
 
 
 def with_seed(config, seed: int):
@@ -350,28 +369,25 @@ def with_seed(config, seed: int):
   return seeded
 
 
-def train_seeds(config, workdir: str, source: Source, make_validation: Optional[MakeValidation] = None
-                ) -> Dict[str, Any]:
-  """The pretrain stage's training: SAVi as `train` does, once per seed of savi.train.seeds (see the module's
-  docstring), the best by final validation FG-ARI selected. source(seed_config) gives each seed its data.
-
-  Returns `train`'s result for seeds = (); else {"selected": seed, "selection": selected.json's dict,
-  "runs": {seed: `train`'s result}}.
-  """
-  def train_one(seed_config, root):
-    return train(seed_config, workdir, *source(seed_config), make_validation=make_validation, root=root)
-  return seeds_loop(config, rundir.savi_dir(workdir), train_one, SAVI_SELECTION, "SAVi")
-
-
-def seeds_loop(config, stage_dir: str, train_one: TrainOne, selection: Selection, title: str) -> Dict[str, Any]:
-  """Runs train_one(config, stage_dir) for savi.train.seeds = (); else train_one(with_seed(config, s),
-  <stage_dir>/seed_<s>) for each seed s in turn (each resumes or skips as `fit` does), then `select_seed`.
+def train_and_select(config, workdir: str, source: Source, make_validation: Optional[MakeValidation] = None
+                     ) -> Dict[str, Any]:
+  """The pretrain stage's training (see the module's docstring): with pretrain.train_seeds = (), `train` once with
+  config.seed in <workdir>/<encoder>/; else `train` for each seed s in turn with config.seed = s in
+  <workdir>/<encoder>/seed_<s>/ (each resumes or skips as `fit` does), then `select_seed` by the model's selection.
+  source(seed_config) gives each seed its data.
 
   selected.json is removed before any seed trains and written once all are trained, so it always names a seed
   whose run is finished (a run killed in between serves no encoder until the stage is run again).
+  Returns `train`'s result for seeds = (); else {"selected": seed, "selection": selected.json's dict,
+  "runs": {seed: `train`'s result}}.
   """
-  seeds = seeds_of(config)
-  if not seeds:
+  stage_dir, title = rundir.pretrain_dir(workdir, config.encoder), encoders.get(config.encoder).title
+
+  def train_one(seed_config, root):
+    return train(seed_config, workdir, *source(seed_config), make_validation=make_validation, root=root)
+
+  seeds = rundir.train_seeds(config, "pretrain")
+  if seeds == (None,):
     return train_one(config, stage_dir)
   path = rundir.selection_path(stage_dir)
   if os.path.exists(path):
@@ -380,11 +396,13 @@ def seeds_loop(config, stage_dir: str, train_one: TrainOne, selection: Selection
   for seed in seeds:
     print(f"[pretrain] {title} seed {seed} of {seeds} -> {rundir.seed_dir(stage_dir, seed)}", flush=True)
     runs[seed] = train_one(with_seed(config, seed), rundir.seed_dir(stage_dir, seed))
-  chosen = select_seed(config, stage_dir, {s: r["step"] for s, r in runs.items()}, selection, title)
+  chosen = select_seed(config, stage_dir, {s: r["step"] for s, r in runs.items()}, model_of(config).selection,
+                       title)
   return {"selected": chosen["selected_seed"], "selection": chosen, "runs": runs}
 
 
-def select_seed(config, stage_dir: str, steps: Dict[int, int], selection: Selection, title: str) -> Dict[str, Any]:
+def select_seed(config, stage_dir: str, steps: Dict[int, int], selection: encoders.Selection,
+                title: str) -> Dict[str, Any]:
   """Selects among the trained seeds (`steps`: seed -> the step its run ended at) by each one's final validation
   (the last entry of <stage_dir>/seed_<s>/val_metrics.json, which must be at that step): the best
   `selection.metric`, ties to the lower seed, NaN last. Writes <stage_dir>/selected.json and the curves'
@@ -399,8 +417,8 @@ def select_seed(config, stage_dir: str, steps: Dict[int, int], selection: Select
         continue
       raise UserError(
           f"{title} seed {seed} has no validation {selection.name} at its last step {step} in "
-          f"{rundir.seed_dir(stage_dir, seed)}/val_metrics.json, so savi.train.seeds={tuple(steps)} cannot be "
-          "ranked: give the run validation episodes (savi.eval.episodes >= 1, a dataset with a val split).")
+          f"{rundir.seed_dir(stage_dir, seed)}/val_metrics.json, so pretrain.train_seeds={tuple(steps)} cannot be "
+          "ranked: give the run validation episodes (pretrain.eval.episodes >= 1, a dataset with a val split).")
     records.append({"seed": seed, **history[-1]})
     curves[seed] = history
 
@@ -426,7 +444,7 @@ def select_seed(config, stage_dir: str, steps: Dict[int, int], selection: Select
 
 
 def run(config, workdir: str, make_validation: Optional[MakeValidation] = None) -> None:
-  """The pretrain stage: trains SAVi on the dataset of `config` (roboshape.data) to config.savi.train.steps, once
-  per seed of savi.train.seeds (`train_seeds`), validated by `make_validation` (roboshape/stages.py passes the
-  encoder's evaluator)."""
-  train_seeds(config, workdir, lambda seed_config: data_source(seed_config, workdir), make_validation)
+  """The pretrain stage: trains the model of the run's encoder on the dataset of `config` (roboshape.data) to
+  pretrain.train.steps, once per seed of pretrain.train_seeds (`train_and_select`), validated by
+  `make_validation` (roboshape/stages.py passes the encoder's evaluator)."""
+  train_and_select(config, workdir, lambda seed_config: data_source(seed_config, workdir), make_validation)
