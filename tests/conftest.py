@@ -51,3 +51,19 @@ def synthetic_dataset(tmp_path_factory):
   path = str(tmp_path_factory.mktemp("synthetic_data") / "roboshape_push" / "1.0.0")
   return rlds.write_dataset(path, {"train": [_synthetic_episode(s) for s in range(4)],
                                    "val": [_synthetic_episode(1_000_000 + s) for s in range(2)]})
+
+
+def fill_disk_at_checkpoint(monkeypatch, step: int) -> None:
+  """Makes the disk full for the save of checkpoint `step`: orbax's writes of that step's metadata files fail with
+  ENOSPC in orbax's own threads, as on a real full disk (patched at orbax's lowest Python write; the arrays go
+  through TensorStore's native code). Other steps are written as usual."""
+  import errno  # pylint: disable=import-outside-toplevel
+  from orbax.checkpoint._src.path import async_path  # pylint: disable=import-outside-toplevel
+  real = async_path.write_text
+
+  async def write_text(path, text):
+    if f"{os.sep}{step}.orbax-checkpoint-tmp" in str(path):
+      raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return await real(path, text)
+
+  monkeypatch.setattr(async_path, "write_text", write_text)

@@ -28,6 +28,7 @@ import tqdm
 
 from roboshape import data as data_lib
 from roboshape import rundir
+from roboshape.errors import DiskFull
 from roboshape.errors import UserError
 from roboshape.data import rlds
 
@@ -152,6 +153,17 @@ class _SplitCollector:
                          desc=f"collect {writer.task} {split}")
 
   def run(self) -> Dict[str, Any]:
+    try:
+      self._collect()
+    finally:
+      self.bar.close()      # also before an error's one line, which then ends the output
+    elapsed = time.time() - self.start
+    return {"split": self.split, "episodes": self.kept, "failures": self.failed,
+            "new_episodes": self.new_successes, "new_failures": self.new_failures,
+            "frames": self.frames, "seconds": elapsed}
+
+  def _collect(self) -> None:
+    """Collects until the split holds its target, committing shard by shard."""
     restarts = 0
     while self.kept + len(self.pending) < self.target:
       outstanding = [s for s in range(self.cursor, self.requested_until) if s not in self.buffer]
@@ -174,11 +186,6 @@ class _SplitCollector:
       missing = [s for s in outstanding if s not in self.buffer and s >= self.cursor]
       if missing:
         raise RuntimeError(f"the simulator pool returned no episode for seeds {missing[:5]}")
-    self.bar.close()
-    elapsed = time.time() - self.start
-    return {"split": self.split, "episodes": self.kept, "failures": self.failed,
-            "new_episodes": self.new_successes, "new_failures": self.new_failures,
-            "frames": self.frames, "seconds": elapsed}
 
   def _receive(self, episode: Mapping[str, Any]) -> None:
     seed = int(episode["seed"])
@@ -215,10 +222,10 @@ class _SplitCollector:
     except OSError as e:
       if e.errno != errno.ENOSPC:
         raise
-      raise UserError(f"disk full while writing {self.writer.path}: the {self.writer.num_episodes('train')} train "
-                      f"and {self.writer.num_episodes('val')} val episodes committed so far are kept and readable "
-                      "(roboshape.json says complete: false). Free some space and run the same command again "
-                      "to finish.") from None
+      raise DiskFull(f"{DiskFull.PREFIX} while writing {self.writer.path}: the "
+                     f"{self.writer.num_episodes('train')} train and {self.writer.num_episodes('val')} val episodes "
+                     "committed so far are kept and readable (roboshape.json says complete: false). Free some space "
+                     "and run the same command again to finish.") from None
     self.kept += len(self.pending)
     self.pending, self.pending_failed = [], []
 

@@ -157,10 +157,6 @@ def file_sha256(path: str) -> str:
   return digest.hexdigest()
 
 
-def _disk_full(e: BaseException) -> bool:
-  return (isinstance(e, OSError) and e.errno == errno.ENOSPC) or "No space left on device" in str(e)
-
-
 def _write_records(path: str, records: Sequence[bytes]) -> None:
   """Writes a TFRecord file; a full disk raises OSError(ENOSPC) whatever layer noticed it."""
   try:
@@ -170,8 +166,8 @@ def _write_records(path: str, records: Sequence[bytes]) -> None:
     with open(path, "rb+") as f:
       os.fsync(f.fileno())
   except (tf.errors.OpError, OSError) as e:
-    if _disk_full(e):
-      raise OSError(errno.ENOSPC, f"No space left on device while writing {path}") from e
+    if fileio.disk_full(e):
+      raise OSError(errno.ENOSPC, fileio.NO_SPACE, path) from e
     raise
 
 
@@ -435,8 +431,8 @@ def write_tfds_metadata(path: str, state: Mapping[str, Any], feats: tfds.feature
     for filename in sorted(os.listdir(staging), key=lambda n: n == "dataset_info.json"):  # dataset_info last
       os.replace(os.path.join(staging, filename), os.path.join(path, filename))
   except (tf.errors.OpError, OSError) as e:
-    if _disk_full(e):
-      raise OSError(errno.ENOSPC, f"No space left on device while writing metadata in {path}") from e
+    if fileio.disk_full(e):
+      raise OSError(errno.ENOSPC, f"{fileio.NO_SPACE} while writing metadata", path) from e
     raise
   finally:
     shutil.rmtree(staging, ignore_errors=True)

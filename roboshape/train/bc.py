@@ -38,6 +38,7 @@ from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.train import cache
 from roboshape.train import history as history_lib
+from roboshape.train import scalars
 from roboshape.train import sharding
 
 
@@ -306,8 +307,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
     return device_eval_step(params, dp.put_batch(batch))
   start = int(state["step"])
   base_rng = jax.random.PRNGKey(seed)
-  from tensorboardX import SummaryWriter  # pylint: disable=import-outside-toplevel
-  writer = SummaryWriter(os.path.join(out, "tb"))
+  writer = scalars.Scalars(os.path.join(out, "tb"))
   metrics = None
   val = {}
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
@@ -317,13 +317,11 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
       state, metrics = train_step(state, batch, base_rng)
       done = step + 1
       if done % tc.log_every == 0 or done == tc.steps:
-        for k, v in metrics.items():
-          writer.add_scalar(f"train/{k}", float(v), done)
-        writer.add_scalar("train/learning_rate", float(schedule(step)), done)
+        writer.write(done, {**{f"train/{k}": float(v) for k, v in metrics.items()},
+                            "train/learning_rate": float(schedule(step))})
       if done % tc.eval_every == 0 or done == tc.steps:
         val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
-        writer.add_scalar("val/nll", val["nll"], done)
-        writer.add_scalar("val/action_mse", val["action_mse"], done)
+        writer.write(done, {"val/nll": val["nll"], "val/action_mse": val["action_mse"]})
         history_lib.record(out, "val_metrics", done, dict(val, train_nll=float(metrics["nll"])),
                            seconds_before + time.perf_counter() - run_start, keys=("train_nll", "nll", "action_mse"),
                            title=f"policy validation, {config.name}")
