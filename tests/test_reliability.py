@@ -154,10 +154,13 @@ def test_a_shard_that_cannot_be_made_again_is_refused_and_left_alone(dataset, tm
   with pytest.raises(UserError) as e:
     _collect(config, copy, FakePool(brightness=1))
   message = str(e.value)
-  assert "\n" not in message and shards[1]["file"] in message and f"delete {copy} and collect again" in message
+  assert "\n" not in message and shards[1]["file"] in message and f"{copy} is left as it is" in message
+  assert "repair it with the roboshape that collected it" in message and "delete" not in message.lower()
   assert _files(copy) == before and not any(name.endswith(".tmp") for name in os.listdir(copy))
-  with pytest.raises(UserError, match=r"env version 'synthetic-2'.*delete .* and collect again"):
+  with pytest.raises(UserError, match=r"env version 'synthetic-1', this one is 'synthetic-2'\) can make it again: "
+                     r"run the same command with the roboshape of that version") as e:
     _collect(config, copy, FakePool(env_version="synthetic-2"))
+  assert "delete" not in str(e.value).lower()
   assert _files(copy) == before
 
 
@@ -318,7 +321,8 @@ def test_a_policy_refuses_an_encoder_it_was_not_trained_on(policy_run, tmp_path,
   monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: _toy_encoder("toy-v2"))
   policy_dir = os.path.join(workdir, "policy")
   message = (f"the policy in {policy_dir} was trained on encoder toy-v1, the workdir's encoder is now toy-v2: "
-             f"its actions would be meaningless. Delete {policy_dir} (or move it away)")
+             "its actions would be meaningless, and the policy is left as it is. To train one on the current "
+             f"encoder, rename {policy_dir} (e.g. to {policy_dir}.old, which keeps it)")
   before = sorted(os.listdir(policy_dir))
   for attempt in (lambda: bc.load_policy(workdir),                                   # load_policy
                   lambda: closed_loop.run(config, workdir),                          # evaluate
@@ -326,7 +330,7 @@ def test_a_policy_refuses_an_encoder_it_was_not_trained_on(policy_run, tmp_path,
                   lambda: bc.train(config, workdir, cache.build(config, workdir, _toy_encoder("toy-v2")))):
     with pytest.raises(UserError) as e:
       attempt()
-    assert str(e.value).startswith(message) and "\n" not in str(e.value)
+    assert str(e.value).startswith(message) and "\n" not in str(e.value) and "delete" not in str(e.value).lower()
   assert sorted(os.listdir(policy_dir)) == before
 
 

@@ -89,8 +89,8 @@ def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:
   if state is not None:
     differences = config_differences(state["config"], summary)
     if differences:
-      raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}). Use another "
-                      "--workdir, set --config.data.dir to another folder, or delete that dataset.")
+      raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}); it is left as it "
+                      "is: use another --workdir, or set --config.data.dir to another folder.")
   elif any(os.path.exists(os.path.join(path, name)) for name in FOREIGN_MARKERS):
     # roboshape writes the TFDS metadata only after roboshape.json, so metadata without it is not roboshape's
     raise UserError(f"{path} holds a TFDS dataset that roboshape did not write (it has no "
@@ -244,8 +244,10 @@ def repair_shards(pool, path: str, state: Mapping[str, Any], progress: bool = Tr
   first = os.path.join(path, damaged[0]["file"])
   version = getattr(pool, "env_version", None)
   if state["env_version"] and version and version != state["env_version"]:
-    raise UserError(f"shard {first} is {damaged[0]['problem']}, and the simulator (env version {version!r}) is not "
-                    f"the one that collected it ({state['env_version']!r}): delete {path} and collect again.")
+    raise UserError(f"shard {first} is {damaged[0]['problem']}, and only the simulator that collected it (env "
+                    f"version {state['env_version']!r}, this one is {version!r}) can make it again: run the same "
+                    "command with the roboshape of that version (it re-collects the damaged shards and keeps the "
+                    f"rest), or collect a new dataset into another --config.data.dir. {path} is left as it is.")
   for item in damaged:
     shard = state["splits"][item["split"]]["shards"][item["index"]]
     if progress:
@@ -279,8 +281,9 @@ def _collect_seeds(pool, seeds: Sequence[int], file: str) -> List[Dict[str, Any]
   failed = [s for s in seeds if not bool(got[s]["success"])]
   if failed:
     raise UserError(f"re-collecting the damaged shard {file}: the expert now fails seed(s) {failed[:5]} it "
-                    f"solved before (the simulator differs from the one that collected it): delete "
-                    f"{os.path.dirname(file)} and collect again.")
+                    "solved before (the simulator differs from the one that collected it): repair it with the "
+                    "roboshape that collected it, or collect a new dataset into another --config.data.dir. "
+                    f"{os.path.dirname(file)} is left as it is.")
   return [got[s] for s in seeds]
 
 
@@ -298,7 +301,8 @@ def collect_dataset(pool, path: str, summary: Mapping[str, Any], targets: Mappin
     version = getattr(pool, "env_version", None)
     if state is not None and state["env_version"] and version and version != state["env_version"]:
       raise UserError(f"{path} was partly collected with env version {state['env_version']!r}, the simulator is "
-                      f"now {version!r}: delete it and collect again (or go back to the old roboshape).")
+                      f"now {version!r}: finish it with the roboshape of that version, or collect a new dataset "
+                      "into another --config.data.dir. It is left as it is.")
     writer = rlds.DatasetWriter(path, summary, targets, seed_bases=SEED_BASES)
     report = {"complete": False, "already_complete": False, "repaired": repaired}
     for split in data_lib.SPLITS:

@@ -230,8 +230,9 @@ def check_encoder(workdir: str, identity: str, train_seed=None) -> None:
   now = _portable(identity, workdir)
   if trained_on != now:
     raise UserError(f"the policy in {out} was trained on encoder {trained_on}, the workdir's encoder is now {now}: "
-                    f"its actions would be meaningless. Delete {out} (or move it away) to train the policy again "
-                    "on the current encoder.")
+                    "its actions would be meaningless, and the policy is left as it is. To train one on the current "
+                    f"encoder, rename {out} (e.g. to {out}.old, which keeps it) and run the train_policy stage "
+                    "again.")
 
 
 def _record_encoder(config, workdir: str, feature_path: str, resuming: bool, train_seed=None) -> None:

@@ -69,8 +69,8 @@ def _encode_group(encoder, episodes: List[dict], dtype) -> List[np.ndarray]:
   missing = [k for k in encoder.inputs if k not in episodes[0]]
   if missing:
     raise UserError(f"the {encoder.name} encoder needs observation/{', observation/'.join(missing)}, which this "
-                    "dataset does not store: collect it again with this version of roboshape (into a new "
-                    "--config.data.dir, or delete the old one).")
+                    "dataset does not store: collect it again with this version of roboshape into a new "
+                    "--config.data.dir (the old dataset still serves the encoders that do not need it).")
   length = _bucket(max(len(e["image"]) for e in episodes))
   videos = {k: [] for k in encoder.inputs}
   for e in episodes:
