@@ -24,8 +24,15 @@ does not restore even as saved (the shapes and dtypes its own metadata records, 
 that restores as saved but not into the caller's structure (another config's model, shapes or optimizer) is intact:
 that is a one-line UserError naming the safe action (the config that wrote it), with no fallback to an older step
 and nothing moved. When no step restores and every one is damaged, the error is one line that says what to do.
+
+A full disk while saving is an OSError(ENOSPC) naming the checkpoint folder, raised by `save`, `wait` or `close`
+(orbax writes in the background and raises an earlier save's error at the next call). The step being written stays
+a temporary folder that orbax never lists (and removes when that step is saved again), so the last complete step
+is what restores. What orbax's threads log about the failure themselves is dropped (`_quiet_background_reports`):
+the caller's error says it once (roboshape/stages.py makes it one line).
 """
 import contextlib
+import errno
 import gc
 import io
 import logging
@@ -37,6 +44,7 @@ from typing import Any, Iterator, List, NamedTuple, Optional, Tuple
 import jax
 import orbax.checkpoint as ocp
 
+from roboshape import fileio
 from roboshape.errors import UserError
 
 DAMAGED_PREFIX = "damaged_step_"
@@ -49,6 +57,7 @@ class Checkpointer:
 
   def __init__(self, directory: str, keep: int = 3):
     self.directory = os.path.abspath(directory)
+    _quiet_background_reports()
     self._manager = ocp.CheckpointManager(
         self.directory, item_handlers={name: ocp.StandardCheckpointHandler() for name in (STATE, PARAMS, LEGACY)},
         options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
@@ -65,7 +74,8 @@ class Checkpointer:
     items = {STATE: ocp.args.StandardSave(state)}
     if isinstance(state, dict) and PARAMS in state:
       items[PARAMS] = ocp.args.StandardSave(state[PARAMS])
-    self._manager.save(step, args=ocp.args.Composite(**items), force=True)
+    with self._disk_full_named():
+      self._manager.save(step, args=ocp.args.Composite(**items), force=True)
 
   def restore_params(self, like: Any, step: Optional[int] = None) -> Any:
     """The params of the checkpoint at `step` restored into the structure, shapes and dtypes of `like`, on `like`'s
@@ -146,11 +156,25 @@ class Checkpointer:
     return self._try_restore(step, None)[1] is None
 
   def wait(self) -> None:
-    self._manager.wait_until_finished()
+    with self._disk_full_named():
+      self._manager.wait_until_finished()
 
   def close(self) -> None:
-    self._manager.wait_until_finished()
-    self._manager.close()
+    try:
+      self.wait()
+    finally:
+      self._manager.close()     # a save's error is raised once: closing after it waits for nothing more
+
+  @contextlib.contextmanager
+  def _disk_full_named(self) -> Iterator[None]:
+    """Raises a full disk that orbax met while saving (here, or in its threads for an earlier save) as
+    OSError(ENOSPC) naming this checkpoint folder; other errors as they are."""
+    try:
+      yield
+    except Exception as e:  # pylint: disable=broad-except
+      if not fileio.disk_full(e):
+        raise
+      raise OSError(errno.ENOSPC, f"{fileio.NO_SPACE} while saving a checkpoint", self.directory) from e
 
   def __enter__(self):
     return self
@@ -185,7 +209,6 @@ class Checkpointer:
     legacy = os.path.isdir(os.path.join(self.directory, str(step), LEGACY))
     stored = LEGACY if legacy else item
     as_saved = like is None or (legacy and item == PARAMS)
-    _drop_stragglers()
     with _quiet() as sink:
       try:
         value = self._read(step, stored, None if as_saved else jax.tree.map(_target, like))
@@ -274,8 +297,9 @@ def _settle(sink: io.StringIO, poll: float = 0.05, quiet_polls: int = 6, limit: 
     calm, seen = (calm + 1, seen) if size == seen else (0, size)
 
 
-def _abandoned_read(e: Optional[BaseException]) -> bool:
-  """Whether `e` (or what caused it) is the failure of a read a failed restore abandoned."""
+def _abandoned_io(e: Optional[BaseException]) -> bool:
+  """Whether `e` (or what caused it) is the failure of a read or write that orbax abandoned when another one of
+  the same restore or save failed."""
   while e is not None:
     text = str(e)
     if ("reading array index" in text or "OCDBT database" in text or
@@ -285,27 +309,38 @@ def _abandoned_read(e: Optional[BaseException]) -> bool:
   return False
 
 
-class _AbandonedReadFilter(logging.Filter):
-  """Drops asyncio's "exception was never retrieved" about an abandoned read."""
+def _background_report(error: Optional[BaseException], message: str = "") -> bool:
+  """Whether a report from a background thread (an error, a log message) is about an abandoned read or write or a
+  full disk: what the caller hears about anyway, from the restore that failed or at the next save or wait."""
+  if error is not None and (_abandoned_io(error) or fileio.disk_full(error)):
+    return True
+  return fileio.NO_SPACE in message
+
+
+class _BackgroundReportFilter(logging.Filter):
+  """Drops the log records of `_background_report`s: asyncio's "exception was never retrieved", and orbax's own
+  tracebacks of a failed save (one per thread it ran in)."""
 
   def filter(self, record: logging.LogRecord) -> bool:
-    return not (record.exc_info and _abandoned_read(record.exc_info[1]))
+    return not _background_report(record.exc_info[1] if record.exc_info else None, record.getMessage())
 
 
-def _drop_stragglers() -> None:
-  """Drops what reads abandoned by a failed restore report when they end after `_settle` (or, through a logging
-  handler that holds the real stderr, during it); installed once per process."""
-  if getattr(_drop_stragglers, "installed", False):
+def _quiet_background_reports() -> None:
+  """Drops the `_background_report`s of orbax's and asyncio's threads: what reads abandoned by a failed restore
+  report when they end after `_settle` (or, through a logging handler that holds the real stderr, during it), and
+  what a save that met a full disk logs from each thread; installed once per process, by the first Checkpointer."""
+  if getattr(_quiet_background_reports, "installed", False):
     return
-  _drop_stragglers.installed = True
+  _quiet_background_reports.installed = True
   previous = sys.unraisablehook
 
   def hook(unraisable):
-    if not _abandoned_read(unraisable.exc_value):
+    if not _background_report(unraisable.exc_value):
       previous(unraisable)
 
   sys.unraisablehook = hook
-  logging.getLogger("asyncio").addFilter(_AbandonedReadFilter())
+  for name in ("asyncio", "absl"):     # orbax logs through absl
+    logging.getLogger(name).addFilter(_BackgroundReportFilter())
 
 
 class _Failure(NamedTuple):

@@ -5,7 +5,12 @@ imports TensorFlow and a stage that trains never imports SAPIEN. Each stage resu
 and skips work that is already done. The pretrain stage is the encoder's own (roboshape.encoders.Kind.pretrain),
 run as `run(config, workdir, make_validation)` with the validation of the encoder's evaluator (Kind.evaluator, in
 roboshape/eval/): this is where training meets evaluation, so that train/ never imports eval/.
+
+A full disk ends a stage in one line (`DiskFull`, `disk_full_is_one_line`) wherever it is noticed, for every stage
+alike: the stages write atomically (roboshape/fileio.py, orbax's temporary checkpoint folders, dataset shards under
+temporary names), so what they wrote completely is kept and the same command resumes once there is space.
 """
+import contextlib
 import importlib
 import json
 import os
@@ -15,8 +20,10 @@ import ml_collections
 
 from roboshape import config_check
 from roboshape import encoders
+from roboshape import fileio
 from roboshape import lanes as lanes_lib
 from roboshape import rundir
+from roboshape.errors import DiskFull
 from roboshape.errors import UserError
 from roboshape.grid import grid_configs
 
@@ -114,7 +121,8 @@ def run_grid(config, workdir: str) -> None:
   for _, _, sub, sub_dir in runs:
     check_workdir(sub, sub_dir)
   with rundir.hold_workdir(workdir):
-    rundir.save_config(config, workdir)
+    with disk_full_is_one_line("the grid", workdir):
+      rundir.save_config(config, workdir)
     lanes = int(config.grid.get("lanes", 1))
     if lanes > 1:
       _run_lanes(config, runs, lanes)
@@ -123,12 +131,15 @@ def run_grid(config, workdir: str) -> None:
         print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
         try:
           run(sub, sub_dir)
+        except DiskFull:
+          raise
         except UserError as e:
           _finish_run(config, task, encoder, sub, sub_dir, str(e))
           continue
         _finish_run(config, task, encoder, sub, sub_dir, None)
     if "report" in config.stages:
-      importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+      with disk_full_is_one_line("the report stage", workdir):
+        importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
 
 
 def _run_lanes(config, runs, lanes: int) -> None:
@@ -151,7 +162,7 @@ def _run_lanes(config, runs, lanes: int) -> None:
       _finish_run(config, task, encoder, sub, job[2], None)
       return
     message = line.removeprefix("roboshape: error: ") if code == 2 else f"exit status {code}: {line}"
-    if code == 2 and encoders.get(encoder).baseline:
+    if code == 2 and encoders.get(encoder).baseline and not message.startswith(DiskFull.PREFIX):
       _finish_run(config, task, encoder, sub, job[2], message)
     else:
       failed.append(f"{task} x {encoder} ({message})")
@@ -171,8 +182,7 @@ def _finish_run(config, task: str, encoder: str, sub, sub_dir: str, error) -> No
     if not encoders.get(encoder).baseline:
       raise UserError(error)
     os.makedirs(sub_dir, exist_ok=True)
-    with open(skipped, "w") as f:
-      json.dump({"reason": error}, f)
+    fileio.atomic_write_json(skipped, {"reason": error})
     print(f"[roboshape] skipped {task} x {encoder}: {error}", flush=True)
     return
   if os.path.exists(skipped):
@@ -220,12 +230,31 @@ def run(config, workdir: str) -> None:
   config_check.check(config)
   check_workdir(config, workdir)
   with rundir.hold_workdir(workdir):
-    rundir.save_config(config, workdir)
+    with disk_full_is_one_line("the run", workdir):
+      rundir.save_config(config, workdir)
     for name in config.stages:
       runner = stage_runner(name, config)
       print(f"[roboshape] stage {name} -> {workdir}", flush=True)
       start = time.time()
-      rundir.record_stage(workdir, name, "running")
-      runner(workdir)
-      rundir.record_stage(workdir, name, "done", time.time() - start)
+      with disk_full_is_one_line(f"the {name} stage", workdir):
+        rundir.record_stage(workdir, name, "running")
+        runner(workdir)
+        rundir.record_stage(workdir, name, "done", time.time() - start)
       print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)
+
+
+@contextlib.contextmanager
+def disk_full_is_one_line(what: str, workdir: str):
+  """Turns a full disk met inside (an OSError(ENOSPC), or a library's error that says so, raised here or by a
+  background writer at its next call: fileio.disk_full) into one `DiskFull` line: what stopped, the path it could
+  not write (else the workdir), and the safe action. A UserError passes as it is (collect's says more)."""
+  try:
+    yield
+  except UserError:
+    raise
+  except Exception as e:  # pylint: disable=broad-except
+    if not fileio.disk_full(e):
+      raise
+    raise DiskFull(f"{DiskFull.PREFIX} while {what} wrote {fileio.disk_full_path(e) or workdir}: what it wrote "
+                   f"completely is kept. Free some space on that disk (keep {workdir}: the run resumes from it) "
+                   "and run the same command again to resume.") from e

@@ -77,3 +77,19 @@ def tiny_run(synthetic_dataset, tmp_path_factory):
   finally:
     jax.config.update(flag, before)
   return workdir
+
+
+def fill_disk_at_checkpoint(monkeypatch, step: int) -> None:
+  """Makes the disk full for the save of checkpoint `step`: orbax's writes of that step's metadata files fail with
+  ENOSPC in orbax's own threads, as on a real full disk (patched at orbax's lowest Python write; the arrays go
+  through TensorStore's native code). Other steps are written as usual."""
+  import errno  # pylint: disable=import-outside-toplevel
+  from orbax.checkpoint._src.path import async_path  # pylint: disable=import-outside-toplevel
+  real = async_path.write_text
+
+  async def write_text(path, text):
+    if f"{os.sep}{step}.orbax-checkpoint-tmp" in str(path):
+      raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return await real(path, text)
+
+  monkeypatch.setattr(async_path, "write_text", write_text)

@@ -1,9 +1,13 @@
-"""The tools that read a run's files say which file is damaged, in one line with exit status 2, and leave it be."""
+"""The tools that read a run's files say which file is damaged, in one line with exit status 2, and leave it be; a
+full disk is found wherever a library noticed it, and a small write it stops leaves the file as it was."""
+import errno
+import json
 import os
 
 import pytest
 
 from configs import common
+from roboshape import fileio
 from roboshape import rundir
 from roboshape import status
 from roboshape.errors import UserError
@@ -84,3 +88,51 @@ def test_a_data_dir_the_run_cannot_write_is_refused_before_anything_is_written(t
   assert not workdir.exists() and not os.listdir(data)
   config.stages = ("train_policy",)        # a run that does not collect only reads the dataset: no such check
   stages.check_workdir(config, str(workdir))
+
+
+def _raised(fail):
+  try:
+    fail()
+  except Exception as e:  # pylint: disable=broad-except
+    return e
+  raise AssertionError("nothing raised")
+
+
+def test_a_full_disk_is_found_in_whatever_error_a_library_wraps_it_and_names_its_path():
+  def orbax():             # TensorStore's error as orbax raises it, while a Python write's ENOSPC was being handled
+    try:
+      raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    except OSError:
+      raise ValueError('RESOURCE_EXHAUSTED: Error writing "b/0" in OCDBT database at local file '
+                       '"/w/savi/checkpoints/20.orbax-checkpoint-tmp/state/": Failed to write 183 bytes to file 8: '
+                       "No space left on device [os_error_code='28']") from None
+
+  def wrapped():           # a bare ENOSPC (a Python write names no file) under another error type
+    try:
+      raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    except OSError as e:
+      raise RuntimeError("save failed") from e
+
+  e = _raised(orbax)
+  assert fileio.disk_full(e) and fileio.disk_full_path(e) == "/w/savi/checkpoints/20.orbax-checkpoint-tmp/state/"
+  e = _raised(wrapped)
+  assert fileio.disk_full(e) and fileio.disk_full_path(e) is None
+  e = _raised(lambda: open("/nonexistent/file"))
+  assert not fileio.disk_full(e) and fileio.disk_full_path(e) is None
+
+
+def test_a_small_write_the_disk_refuses_names_the_file_and_leaves_it_as_it_was(tmp_path, monkeypatch):
+  path = str(tmp_path / "summary.json")
+  fileio.atomic_write_json(path, {"step": 10})
+  real_fsync = os.fsync
+
+  def fsync_on_a_full_disk(fd):       # where delayed allocation reports a full disk
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+  monkeypatch.setattr(os, "fsync", fsync_on_a_full_disk)
+  e = _raised(lambda: fileio.atomic_write_json(path, {"step": 20}))
+  assert isinstance(e, OSError) and e.errno == errno.ENOSPC and e.filename == path
+  monkeypatch.setattr(os, "fsync", real_fsync)
+  with open(path) as f:
+    assert json.load(f) == {"step": 10}
+  assert os.listdir(tmp_path) == ["summary.json"]

@@ -528,6 +528,38 @@ def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
   assert "- skipped: SAVi on push: no evaluation results" in md
 
 
+def test_a_full_disk_stops_the_grid_in_one_line_rather_than_skipping_the_run(tmp_path, monkeypatch):
+  """A baseline's stage that meets a full disk (an OSError(ENOSPC) naming its file) is one DiskFull line naming the
+  stage and the file, as every stage's is (stages.run), and it stops the grid: every later run would meet the same
+  disk, so the run is not recorded as skipped and no report is written."""
+  import errno  # pylint: disable=import-outside-toplevel
+  from roboshape.errors import DiskFull  # pylint: disable=import-outside-toplevel
+  config = reproduce.get_config("tiny")
+  config.grid.encoders = ("savi", "dino")
+  config.stages = ("train_policy", "report")
+  dino_dir = rundir.grid_run_dir(str(tmp_path), "push", "dino")
+  full = os.path.join(dino_dir, "policy", "summary.json")
+
+  class Stage:
+    @staticmethod
+    def run(cfg, workdir):
+      if cfg.encoder == "dino":
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), full)
+
+  monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
+  real_import = stages.importlib.import_module
+  monkeypatch.setattr(stages.importlib, "import_module",
+                      lambda name, *args, **kwargs: (Stage if name == "fake_train_policy"
+                                                     else real_import(name, *args, **kwargs)))
+  with pytest.raises(DiskFull) as e:
+    stages.run(config, str(tmp_path))
+  assert str(e.value) == (f"disk full while the train_policy stage wrote {full}: what it wrote completely is kept. "
+                          f"Free some space on that disk (keep {dino_dir}: the run resumes from it) and run the same "
+                          "command again to resume.")
+  assert not os.path.exists(os.path.join(dino_dir, rundir.SKIPPED_FILE)) and not os.path.exists(tmp_path / "report")
+  assert rundir.read_stage_log(dino_dir)["train_policy"]["state"] == "running"      # status: "stopped", not done
+
+
 def test_summary_over_training_seeds_pools_each_policys_evaluation_seeds():
   def records(train_seed, successes):
     return [dict(task="push", encoder="state", train_seed=train_seed, level="train", seed_index=i // 2, rollout=i % 2,

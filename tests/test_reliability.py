@@ -154,10 +154,13 @@ def test_a_shard_that_cannot_be_made_again_is_refused_and_left_alone(dataset, tm
   with pytest.raises(UserError) as e:
     _collect(config, copy, FakePool(brightness=1))
   message = str(e.value)
-  assert "\n" not in message and shards[1]["file"] in message and f"delete {copy} and collect again" in message
+  assert "\n" not in message and shards[1]["file"] in message and f"{copy} is left as it is" in message
+  assert "repair it with the roboshape that collected it" in message and "delete" not in message.lower()
   assert _files(copy) == before and not any(name.endswith(".tmp") for name in os.listdir(copy))
-  with pytest.raises(UserError, match=r"env version 'synthetic-2'.*delete .* and collect again"):
+  with pytest.raises(UserError, match=r"env version 'synthetic-1', this one is 'synthetic-2'\) can make it again: "
+                     r"run the same command with the roboshape of that version") as e:
     _collect(config, copy, FakePool(env_version="synthetic-2"))
+  assert "delete" not in str(e.value).lower()
   assert _files(copy) == before
 
 
@@ -318,7 +321,8 @@ def test_a_policy_refuses_an_encoder_it_was_not_trained_on(policy_run, tmp_path,
   monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: _toy_encoder("toy-v2"))
   policy_dir = os.path.join(workdir, "policy")
   message = (f"the policy in {policy_dir} was trained on encoder toy-v1, the workdir's encoder is now toy-v2: "
-             f"its actions would be meaningless. Delete {policy_dir} (or move it away)")
+             "its actions would be meaningless, and the policy is left as it is. To train one on the current "
+             f"encoder, rename {policy_dir} (e.g. to {policy_dir}.old, which keeps it)")
   before = sorted(os.listdir(policy_dir))
   for attempt in (lambda: bc.load_policy(workdir),                                   # load_policy
                   lambda: closed_loop.run(config, workdir),                          # evaluate
@@ -326,8 +330,77 @@ def test_a_policy_refuses_an_encoder_it_was_not_trained_on(policy_run, tmp_path,
                   lambda: bc.train(config, workdir, cache.build(config, workdir, _toy_encoder("toy-v2")))):
     with pytest.raises(UserError) as e:
       attempt()
-    assert str(e.value).startswith(message) and "\n" not in str(e.value)
+    assert str(e.value).startswith(message) and "\n" not in str(e.value) and "delete" not in str(e.value).lower()
   assert sorted(os.listdir(policy_dir)) == before
+
+
+def test_a_full_disk_in_train_policy_is_one_line_and_the_same_command_resumes(policy_run, tmp_path, monkeypatch,
+                                                                              caplog, capfd):
+  """The disk fills while the train_policy stage caches its features, then while it saves a checkpoint: each time
+  one DiskFull line naming the stage and what it could not write, nothing half-written that a rerun could take for
+  complete (no shard's temporary file, no manifest, the half-saved step never listed), the last checkpoint restores
+  as it was, and orbax's threads log nothing. With space again, the same call resumes and finishes."""
+  import errno  # pylint: disable=import-outside-toplevel
+  import logging  # pylint: disable=import-outside-toplevel
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  from conftest import fill_disk_at_checkpoint  # pylint: disable=import-outside-toplevel
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  from roboshape.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
+  from roboshape.errors import DiskFull  # pylint: disable=import-outside-toplevel
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  from roboshape.train import cache  # pylint: disable=import-outside-toplevel
+  workdir, _ = _copy_run(policy_run, tmp_path)        # trained to step 20; the copy's dataset gets a cache of its own
+  monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: _toy_encoder())
+  config = _policy_config(steps=30)
+  trained, ckpt_dir = _params(config, workdir), os.path.join(workdir, "policy", "checkpoints")
+  features = cache.feature_dir(config, workdir, _toy_encoder())
+  summary = os.path.join(workdir, "policy", "summary.json")
+
+  def stage():         # as stages.run runs a stage (whose config check refuses the toy encoder's 8x8 frames)
+    with stages.disk_full_is_one_line("the train_policy stage", workdir):
+      bc.run(config, workdir)
+
+  def line(path):
+    return (f"disk full while the train_policy stage wrote {path}: what it wrote completely is kept. Free some "
+            f"space on that disk (keep {workdir}: the run resumes from it) and run the same command again to "
+            "resume.")
+
+  real_savez = np.savez
+
+  def savez_until_full(f, **arrays):                # the val shard meets the full disk half-way through
+    if f"{os.sep}val{os.sep}" not in f.name:
+      return real_savez(f, **arrays)
+    f.write(b"PK half a shard")
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+  with monkeypatch.context() as full:
+    full.setattr(np, "savez", savez_until_full)
+    with pytest.raises(DiskFull) as e:
+      stage()
+  assert str(e.value) == line(os.path.join(features, "val", "shard_00000.npz"))
+  assert os.listdir(os.path.join(features, "val")) == [] and not os.path.exists(os.path.join(features, "manifest.json"))
+  train_shard = os.path.join(features, "train", "shard_00000.npz")
+  kept = os.stat(train_shard).st_mtime_ns
+  with monkeypatch.context() as full:
+    fill_disk_at_checkpoint(full, 30)
+    with pytest.raises(DiskFull) as e:
+      stage()                                       # the cache is finished, then training meets the full disk
+  assert str(e.value) == line(ckpt_dir) and os.stat(train_shard).st_mtime_ns == kept
+  assert os.path.exists(os.path.join(features, "manifest.json"))
+  assert any(name.startswith("30.") for name in os.listdir(ckpt_dir))        # the half-saved step's folder ...
+  with Checkpointer(ckpt_dir) as ckpt:
+    assert ckpt.all_steps() == [10, 20]                                      # ... is not a step
+  assert _same(_params(config, workdir), trained)
+  with open(summary) as f:
+    assert json.load(f)["step"] == 20
+  assert not [r for r in caplog.records if r.levelno >= logging.ERROR] and "Traceback" not in capfd.readouterr().err
+  stage()                                           # space again: the same command resumes from step 20
+  with Checkpointer(ckpt_dir) as ckpt:
+    assert ckpt.all_steps() == [20, 30]
+  assert not [name for name in os.listdir(ckpt_dir) if "tmp" in name]
+  with open(summary) as f:
+    assert json.load(f)["step"] == 30
 
 
 # -------------------------------------------------------------------------------------------- videos and signals

@@ -250,12 +250,35 @@ def test_a_tiny_model_overfits_one_clip(trained):
   assert last <= first / 10, (first, last)
 
 
+def _tensorboard_scalars(logdir):
+  """{tag: [(step, value), ...]} of the event files in `logdir` (oldest first), read back record by record: a length
+  (uint64), its checksum, an Event proto, its checksum."""
+  import struct  # pylint: disable=import-outside-toplevel
+  from tensorboardX.proto import event_pb2  # pylint: disable=import-outside-toplevel
+  scalars = {}
+  for name in sorted(os.listdir(logdir)):
+    with open(os.path.join(logdir, name), "rb") as f:
+      data = f.read()
+    at = 0
+    while at < len(data):
+      (size,) = struct.unpack("<Q", data[at:at + 8])
+      event = event_pb2.Event.FromString(data[at + 12:at + 12 + size])
+      at += 12 + size + 4
+      for value in event.summary.value:
+        scalars.setdefault(value.tag, []).append((event.step, value.simple_value))
+  return scalars
+
+
 def test_training_writes_tensorboard_and_the_decomposition_figure(trained):
   root = rundir.savi_dir(trained["workdir"])
   assert os.path.isfile(os.path.join(root, "figures", f"step_{STEPS:07d}.png"))
-  assert any(name.startswith("events") for name in os.listdir(os.path.join(root, "tb")))
   (step, metrics), = trained["result"]["eval"]
   assert step == STEPS and -1 <= metrics["fg_ari"] <= 1 and 0 <= metrics["miou"] <= 1
+  logged, losses = _tensorboard_scalars(os.path.join(root, "tb")), dict(trained["result"]["history"])
+  assert [s for s, _ in logged["train/loss"]] == list(range(1, STEPS + 1))          # log_every 1 in :tiny
+  np.testing.assert_allclose([v for _, v in logged["train/loss"]], [losses[s] for s in range(1, STEPS + 1)],
+                             rtol=1e-6)
+  assert logged["val/fg_ari"] == [(STEPS, pytest.approx(metrics["fg_ari"]))]
   (entry,) = history_lib.load(root, "val_metrics")
   assert entry["step"] == STEPS and entry["fg_ari"] == metrics["fg_ari"] and entry["train_seconds"] > 0
   assert os.path.isfile(os.path.join(root, "val_metrics.png"))
@@ -319,6 +342,35 @@ def test_resume_continues_at_the_saved_step_with_the_same_data(trained, tmp_path
   assert _tree_equal(result["params"], trained["result"]["params"])
   again = Source(clip, fail_at=0)  # already trained: skips without reading data
   assert pretrain.train(config, str(tmp_path), again)["step"] == STEPS and not again.served
+
+
+def test_a_full_disk_while_pretraining_is_one_line_and_the_run_resumes_to_the_same_params(trained, tmp_path,
+                                                                                         monkeypatch, caplog):
+  """The disk fills while checkpoint 20 is saved (in orbax's threads, which raise it at the next save): one DiskFull
+  line naming the pretrain stage and the checkpoint folder, as stages.run says it; step 10 is what restores, and
+  the same command resumes there and ends with the params of a run that never stopped."""
+  import logging  # pylint: disable=import-outside-toplevel
+  from conftest import fill_disk_at_checkpoint  # pylint: disable=import-outside-toplevel
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  from roboshape.errors import DiskFull  # pylint: disable=import-outside-toplevel
+  config, clip, workdir = trained["config"], trained["episodes"][0]["image"], str(tmp_path)
+  ckpt_dir = os.path.join(workdir, "savi", "checkpoints")
+  with monkeypatch.context() as full:
+    fill_disk_at_checkpoint(full, 20)
+    with pytest.raises(DiskFull) as e:
+      with stages.disk_full_is_one_line("the pretrain stage", workdir):
+        pretrain.train(config, workdir, Source(clip))
+  assert str(e.value).startswith(f"disk full while the pretrain stage wrote {ckpt_dir}: what it wrote completely "
+                                 "is kept. Free some space on that disk") and "\n" not in str(e.value)
+  assert not [r for r in caplog.records if r.levelno >= logging.ERROR]           # orbax's threads said nothing
+  with Checkpointer(ckpt_dir) as ckpt:
+    assert ckpt.all_steps() == [10]
+  resumed = Source(clip)
+  result = pretrain.train(config, workdir, resumed)
+  assert resumed.starts == [10] and result["step"] == STEPS
+  assert _tree_equal(result["params"], trained["result"]["params"])
+  assert [s for s, _ in _tensorboard_scalars(os.path.join(workdir, "savi", "tb"))["train/loss"]] == (
+      list(range(1, STEPS + 1)) + list(range(11, STEPS + 1)))      # both runs' files, none overwritten
 
 
 def test_a_non_finite_loss_stops_naming_step_and_seeds(trained, tmp_path, monkeypatch):

@@ -28,6 +28,7 @@ import tqdm
 
 from roboshape import data as data_lib
 from roboshape import rundir
+from roboshape.errors import DiskFull
 from roboshape.errors import UserError
 from roboshape.data import rlds
 
@@ -88,8 +89,8 @@ def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:
   if state is not None:
     differences = config_differences(state["config"], summary)
     if differences:
-      raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}). Use another "
-                      "--workdir, set --config.data.dir to another folder, or delete that dataset.")
+      raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}); it is left as it "
+                      "is: use another --workdir, or set --config.data.dir to another folder.")
   elif any(os.path.exists(os.path.join(path, name)) for name in FOREIGN_MARKERS):
     # roboshape writes the TFDS metadata only after roboshape.json, so metadata without it is not roboshape's
     raise UserError(f"{path} holds a TFDS dataset that roboshape did not write (it has no "
@@ -152,6 +153,17 @@ class _SplitCollector:
                          desc=f"collect {writer.task} {split}")
 
   def run(self) -> Dict[str, Any]:
+    try:
+      self._collect()
+    finally:
+      self.bar.close()      # also before an error's one line, which then ends the output
+    elapsed = time.time() - self.start
+    return {"split": self.split, "episodes": self.kept, "failures": self.failed,
+            "new_episodes": self.new_successes, "new_failures": self.new_failures,
+            "frames": self.frames, "seconds": elapsed}
+
+  def _collect(self) -> None:
+    """Collects until the split holds its target, committing shard by shard."""
     restarts = 0
     while self.kept + len(self.pending) < self.target:
       outstanding = [s for s in range(self.cursor, self.requested_until) if s not in self.buffer]
@@ -174,11 +186,6 @@ class _SplitCollector:
       missing = [s for s in outstanding if s not in self.buffer and s >= self.cursor]
       if missing:
         raise RuntimeError(f"the simulator pool returned no episode for seeds {missing[:5]}")
-    self.bar.close()
-    elapsed = time.time() - self.start
-    return {"split": self.split, "episodes": self.kept, "failures": self.failed,
-            "new_episodes": self.new_successes, "new_failures": self.new_failures,
-            "frames": self.frames, "seconds": elapsed}
 
   def _receive(self, episode: Mapping[str, Any]) -> None:
     seed = int(episode["seed"])
@@ -215,10 +222,10 @@ class _SplitCollector:
     except OSError as e:
       if e.errno != errno.ENOSPC:
         raise
-      raise UserError(f"disk full while writing {self.writer.path}: the {self.writer.num_episodes('train')} train "
-                      f"and {self.writer.num_episodes('val')} val episodes committed so far are kept and readable "
-                      "(roboshape.json says complete: false). Free some space and run the same command again "
-                      "to finish.") from None
+      raise DiskFull(f"{DiskFull.PREFIX} while writing {self.writer.path}: the "
+                     f"{self.writer.num_episodes('train')} train and {self.writer.num_episodes('val')} val episodes "
+                     "committed so far are kept and readable (roboshape.json says complete: false). Free some space "
+                     "and run the same command again to finish.") from None
     self.kept += len(self.pending)
     self.pending, self.pending_failed = [], []
 
@@ -237,8 +244,10 @@ def repair_shards(pool, path: str, state: Mapping[str, Any], progress: bool = Tr
   first = os.path.join(path, damaged[0]["file"])
   version = getattr(pool, "env_version", None)
   if state["env_version"] and version and version != state["env_version"]:
-    raise UserError(f"shard {first} is {damaged[0]['problem']}, and the simulator (env version {version!r}) is not "
-                    f"the one that collected it ({state['env_version']!r}): delete {path} and collect again.")
+    raise UserError(f"shard {first} is {damaged[0]['problem']}, and only the simulator that collected it (env "
+                    f"version {state['env_version']!r}, this one is {version!r}) can make it again: run the same "
+                    "command with the roboshape of that version (it re-collects the damaged shards and keeps the "
+                    f"rest), or collect a new dataset into another --config.data.dir. {path} is left as it is.")
   for item in damaged:
     shard = state["splits"][item["split"]]["shards"][item["index"]]
     if progress:
@@ -272,8 +281,9 @@ def _collect_seeds(pool, seeds: Sequence[int], file: str) -> List[Dict[str, Any]
   failed = [s for s in seeds if not bool(got[s]["success"])]
   if failed:
     raise UserError(f"re-collecting the damaged shard {file}: the expert now fails seed(s) {failed[:5]} it "
-                    f"solved before (the simulator differs from the one that collected it): delete "
-                    f"{os.path.dirname(file)} and collect again.")
+                    "solved before (the simulator differs from the one that collected it): repair it with the "
+                    "roboshape that collected it, or collect a new dataset into another --config.data.dir. "
+                    f"{os.path.dirname(file)} is left as it is.")
   return [got[s] for s in seeds]
 
 
@@ -291,7 +301,8 @@ def collect_dataset(pool, path: str, summary: Mapping[str, Any], targets: Mappin
     version = getattr(pool, "env_version", None)
     if state is not None and state["env_version"] and version and version != state["env_version"]:
       raise UserError(f"{path} was partly collected with env version {state['env_version']!r}, the simulator is "
-                      f"now {version!r}: delete it and collect again (or go back to the old roboshape).")
+                      f"now {version!r}: finish it with the roboshape of that version, or collect a new dataset "
+                      "into another --config.data.dir. It is left as it is.")
     writer = rlds.DatasetWriter(path, summary, targets, seed_bases=SEED_BASES)
     report = {"complete": False, "already_complete": False, "repaired": repaired}
     for split in data_lib.SPLITS:

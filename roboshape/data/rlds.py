@@ -157,10 +157,6 @@ def file_sha256(path: str) -> str:
   return digest.hexdigest()
 
 
-def _disk_full(e: BaseException) -> bool:
-  return (isinstance(e, OSError) and e.errno == errno.ENOSPC) or "No space left on device" in str(e)
-
-
 def _write_records(path: str, records: Sequence[bytes]) -> None:
   """Writes a TFRecord file; a full disk raises OSError(ENOSPC) whatever layer noticed it."""
   try:
@@ -170,8 +166,8 @@ def _write_records(path: str, records: Sequence[bytes]) -> None:
     with open(path, "rb+") as f:
       os.fsync(f.fileno())
   except (tf.errors.OpError, OSError) as e:
-    if _disk_full(e):
-      raise OSError(errno.ENOSPC, f"No space left on device while writing {path}") from e
+    if fileio.disk_full(e):
+      raise OSError(errno.ENOSPC, fileio.NO_SPACE, path) from e
     raise
 
 
@@ -184,8 +180,9 @@ def load_state(path: str) -> Optional[Dict[str, Any]]:
     with open(state_path) as f:
       state = json.load(f)
   except (OSError, ValueError) as e:
-    raise UserError(f"{state_path} is unreadable ({e}); the dataset's record is damaged: delete {path} and "
-                    "collect again.") from None
+    raise UserError(f"{state_path} is unreadable ({e}): the dataset's record is damaged. Copy it back from a "
+                    "backup if you have one; otherwise collect a new dataset into another --config.data.dir (or "
+                    f"move {path} away and collect again). It is left as it is.") from None
   if state.get("layout") != LAYOUT:
     raise UserError(f"{path} holds a dataset of layout {state.get('layout')!r}, this roboshape writes {LAYOUT!r}: "
                     "collect it again into another directory.")
@@ -255,7 +252,8 @@ def rewrite_shard(path: str, state: Mapping[str, Any], split: str, index: int,
       os.remove(tmp)
   if not same:
     raise UserError(f"re-collecting the damaged shard {final} gave other bytes than recorded (the simulator "
-                    f"differs from the one that collected it): delete {path} and collect again.")
+                    "differs from the one that collected it): repair it with the roboshape that collected it, or "
+                    f"collect a new dataset into another --config.data.dir. {path} is left as it is.")
 
 
 class EpisodeSerializer:
@@ -297,7 +295,8 @@ class DatasetWriter:
                      for split, n in targets.items()},
       }
     elif state["complete"]:
-      raise UserError(f"{path} already holds a complete dataset; it is never rewritten. Delete it to collect again.")
+      raise UserError(f"{path} already holds a complete dataset, which is never rewritten: give another path to "
+                      "collect a new one.")
     self.state = state
     self.resolution = int(state["config"]["resolution"])
     self.depth = bool(state["config"].get("depth", False))
@@ -342,7 +341,8 @@ class DatasetWriter:
     known = self.state["env_version"]
     if len(env_versions) > 1 or (known is not None and env_versions != {known}):
       raise UserError(f"the simulator's env version changed ({known or ''} vs {', '.join(sorted(env_versions))}) "
-                      f"while collecting {self.path}; delete it and collect again with one roboshape version.")
+                      f"while collecting {self.path}: finish it with the roboshape that began it, or collect a new "
+                      "dataset into another --config.data.dir.")
     for e in episodes:
       if e["task"] != self.task or e["image"].shape[1:] != (self.resolution, self.resolution, 3):
         raise ValueError(f"episode of seed {e['seed']} ({e['task']}, {e['image'].shape}) does not belong in "
@@ -435,8 +435,8 @@ def write_tfds_metadata(path: str, state: Mapping[str, Any], feats: tfds.feature
     for filename in sorted(os.listdir(staging), key=lambda n: n == "dataset_info.json"):  # dataset_info last
       os.replace(os.path.join(staging, filename), os.path.join(path, filename))
   except (tf.errors.OpError, OSError) as e:
-    if _disk_full(e):
-      raise OSError(errno.ENOSPC, f"No space left on device while writing metadata in {path}") from e
+    if fileio.disk_full(e):
+      raise OSError(errno.ENOSPC, f"{fileio.NO_SPACE} while writing metadata", path) from e
     raise
   finally:
     shutil.rmtree(staging, ignore_errors=True)
@@ -455,7 +455,7 @@ def write_dataset(path: str, splits: Mapping[str, Sequence[Mapping[str, Any]]],
     `path`.
   """
   if load_state(path) is not None:
-    raise UserError(f"{path} already holds a dataset; it is never rewritten. Delete it first.")
+    raise UserError(f"{path} already holds a dataset, which is never rewritten: give another path.")
   first = next(e for episodes in splits.values() for e in episodes)
   summary = dict(config_summary or {})
   summary.setdefault("task", first["task"])

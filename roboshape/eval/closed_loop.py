@@ -219,15 +219,14 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
   results_lib.write_csv(paths["csv"], records)
   cells = tables.cells_from_summary(summary, config.task)
   encoders = [config.encoder]
-  with open(paths["md"], "w") as f:
-    f.write(f"### {config.task}: success rate, {tables.encoder_name(config.encoder)}\n\n")
-    f.write(tables.render_markdown(cells, encoders, levels))
-    f.write("\n" + notes(summary, config.eval.num_seeds, config.eval.rollouts_per_seed) + "\n")
-  with open(paths["tex"], "w") as f:
-    f.write(tables.render_latex(
-        cells, encoders, levels=levels, label=f"tab:{config.task}_{config.encoder}",
-        caption=f"Success rate of \\textit{{{config.task}}} over the generalization scenarios "
-                f"(mean $\\pm$ std over {_over(summary, config)})"))
+  fileio.atomic_write_text(paths["md"], (
+      f"### {config.task}: success rate, {tables.encoder_name(config.encoder)}\n\n"
+      + tables.render_markdown(cells, encoders, levels)
+      + "\n" + notes(summary, config.eval.num_seeds, config.eval.rollouts_per_seed) + "\n"))
+  fileio.atomic_write_text(paths["tex"], tables.render_latex(
+      cells, encoders, levels=levels, label=f"tab:{config.task}_{config.encoder}",
+      caption=f"Success rate of \\textit{{{config.task}}} over the generalization scenarios "
+              f"(mean $\\pm$ std over {_over(summary, config)})"))
   plots.overall_bar_chart(summary, paths["png"], levels=levels,
                           title=f"{config.task}: success rate per level")
   names = envs.MILESTONES[config.task]

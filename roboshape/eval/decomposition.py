@@ -15,6 +15,8 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy import optimize
 
+from roboshape import fileio
+
 
 def _pairs(n: np.ndarray) -> np.ndarray:
   n = n.astype(np.float64)
@@ -128,6 +130,8 @@ def decomposition_figure(frames: np.ndarray, recon: np.ndarray, rgb: np.ndarray,
     fig.suptitle(title, fontsize=8)
   fig.tight_layout()
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  fig.savefig(path, dpi=100)
-  plt.close(fig)
+  try:
+    fileio.atomic_write_file(path, lambda f: fig.savefig(f, format="png", dpi=100))
+  finally:
+    plt.close(fig)
   return path

@@ -5,6 +5,7 @@ from typing import Dict, List, Sequence
 
 import numpy as np
 
+from roboshape import fileio
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.eval import tables
 
@@ -49,6 +50,8 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   ax.spines[["top", "right"]].set_visible(False)
   fig.tight_layout()
   os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-  fig.savefig(path)
-  plt.close(fig)
+  try:
+    fileio.atomic_write_file(path, lambda f: fig.savefig(f, format=os.path.splitext(path)[1][1:]))
+  finally:
+    plt.close(fig)
   return path

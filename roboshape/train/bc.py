@@ -38,6 +38,7 @@ from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.train import cache
 from roboshape.train import history as history_lib
+from roboshape.train import scalars
 from roboshape.train import sharding
 
 
@@ -229,8 +230,9 @@ def check_encoder(workdir: str, identity: str, train_seed=None) -> None:
   now = _portable(identity, workdir)
   if trained_on != now:
     raise UserError(f"the policy in {out} was trained on encoder {trained_on}, the workdir's encoder is now {now}: "
-                    f"its actions would be meaningless. Delete {out} (or move it away) to train the policy again "
-                    "on the current encoder.")
+                    "its actions would be meaningless, and the policy is left as it is. To train one on the current "
+                    f"encoder, rename {out} (e.g. to {out}.old, which keeps it) and run the train_policy stage "
+                    "again.")
 
 
 def _record_encoder(config, workdir: str, feature_path: str, resuming: bool, train_seed=None) -> None:
@@ -306,8 +308,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
     return device_eval_step(params, dp.put_batch(batch))
   start = int(state["step"])
   base_rng = jax.random.PRNGKey(seed)
-  from tensorboardX import SummaryWriter  # pylint: disable=import-outside-toplevel
-  writer = SummaryWriter(os.path.join(out, "tb"))
+  writer = scalars.Scalars(os.path.join(out, "tb"))
   metrics = None
   val = {}
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
@@ -317,13 +318,11 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
       state, metrics = train_step(state, batch, base_rng)
       done = step + 1
       if done % tc.log_every == 0 or done == tc.steps:
-        for k, v in metrics.items():
-          writer.add_scalar(f"train/{k}", float(v), done)
-        writer.add_scalar("train/learning_rate", float(schedule(step)), done)
+        writer.write(done, {**{f"train/{k}": float(v) for k, v in metrics.items()},
+                            "train/learning_rate": float(schedule(step))})
       if done % tc.eval_every == 0 or done == tc.steps:
         val = evaluate(eval_step, state["params"], val_w, tc.val_batch_size, tc.max_val_samples, normalise[0])
-        writer.add_scalar("val/nll", val["nll"], done)
-        writer.add_scalar("val/action_mse", val["action_mse"], done)
+        writer.write(done, {"val/nll": val["nll"], "val/action_mse": val["action_mse"]})
         history_lib.record(out, "val_metrics", done, dict(val, train_nll=float(metrics["nll"])),
                            seconds_before + time.perf_counter() - run_start, keys=("train_nll", "nll", "action_mse"),
                            title=f"policy validation, {config.name}")

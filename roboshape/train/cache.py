@@ -69,8 +69,8 @@ def _encode_group(encoder, episodes: List[dict], dtype) -> List[np.ndarray]:
   missing = [k for k in encoder.inputs if k not in episodes[0]]
   if missing:
     raise UserError(f"the {encoder.name} encoder needs observation/{', observation/'.join(missing)}, which this "
-                    "dataset does not store: collect it again with this version of roboshape (into a new "
-                    "--config.data.dir, or delete the old one).")
+                    "dataset does not store: collect it again with this version of roboshape into a new "
+                    "--config.data.dir (the old dataset still serves the encoders that do not need it).")
   length = _bucket(max(len(e["image"]) for e in episodes))
   videos = {k: [] for k in encoder.inputs}
   for e in episodes:
@@ -94,14 +94,13 @@ def _step_actions(episode: dict) -> np.ndarray:
 
 
 def _write_shard(path: str, episodes: List[dict], features: List[np.ndarray]) -> None:
-  tmp = path + ".tmp.npz"
-  np.savez(tmp,
-           features=np.concatenate(features, axis=0),
-           action=np.concatenate([_step_actions(e) for e in episodes], axis=0),
-           length=np.asarray([len(e["image"]) for e in episodes], np.int64),
-           seed=np.asarray([int(e.get("seed", -1)) for e in episodes], np.int64),
-           success=np.asarray([bool(e.get("success", True)) for e in episodes], bool))
-  os.replace(tmp, path)
+  """Writes one shard atomically (fileio.atomic_write_file: a failed write, e.g. on a full disk, leaves none)."""
+  arrays = dict(features=np.concatenate(features, axis=0),
+                action=np.concatenate([_step_actions(e) for e in episodes], axis=0),
+                length=np.asarray([len(e["image"]) for e in episodes], np.int64),
+                seed=np.asarray([int(e.get("seed", -1)) for e in episodes], np.int64),
+                success=np.asarray([bool(e.get("success", True)) for e in episodes], bool))
+  fileio.atomic_write_file(path, lambda f: np.savez(f, **arrays))
 
 
 def encode_split(encoder, episodes: Iterable[dict], out_dir: str, dtype: str = "float32",
@@ -128,19 +127,21 @@ def encode_split(encoder, episodes: Iterable[dict], out_dir: str, dtype: str = "
       bar.update(len(idx))
     feats = [by_index[i] for i in range(len(shard))]
     _write_shard(os.path.join(out_dir, f"shard_{index:05d}.npz"), shard, feats)
-  for episode in episodes:
-    index = count // SHARD_SIZE
-    count += 1
-    if index < done:
-      bar.update(1)
-      continue
-    shard.append(episode)
-    if len(shard) == SHARD_SIZE:
-      flush_shard(index)
-      shard = []
-  if shard:
-    flush_shard((count - 1) // SHARD_SIZE)
-  bar.close()
+  try:
+    for episode in episodes:
+      index = count // SHARD_SIZE
+      count += 1
+      if index < done:
+        bar.update(1)
+        continue
+      shard.append(episode)
+      if len(shard) == SHARD_SIZE:
+        flush_shard(index)
+        shard = []
+    if shard:
+      flush_shard((count - 1) // SHARD_SIZE)
+  finally:
+    bar.close()      # also before an error's one line, which then ends the output
   return count
 
 

@@ -93,10 +93,13 @@ def overlay_curves(histories: Dict[str, Sequence[Dict]], key: str, path: str, ti
 
 
 def _save(fig, path: str) -> str:
-  """Lays out `fig`, writes it to `path` (making its folder) and closes it; returns `path`."""
+  """Lays out `fig`, writes it to `path` atomically (making its folder; the format from its extension) and closes
+  it; returns `path`."""
   import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
   fig.tight_layout()
   os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-  fig.savefig(path)
-  plt.close(fig)
+  try:
+    fileio.atomic_write_file(path, lambda f: fig.savefig(f, format=os.path.splitext(path)[1][1:]))
+  finally:
+    plt.close(fig)
   return path

@@ -53,6 +53,7 @@ from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
 from roboshape.models import savi
 from roboshape.train import history as history_lib
+from roboshape.train import scalars
 from roboshape.train import sharding
 
 
@@ -244,9 +245,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
   batches_from: as in `train`. validation: None for none. title: the model's name in messages ("SAVi").
   Returns {"step", "params", "history": [(step, loss)], "eval": [(step, metrics)]}.
   """
-  # pylint: disable=import-outside-toplevel
-  from tensorboardX import SummaryWriter
-  from tqdm import tqdm
+  from tqdm import tqdm  # pylint: disable=import-outside-toplevel
 
   tc, ec = config.pretrain.train, config.pretrain.eval
   history, evals = [], []
@@ -269,7 +268,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
       print(f"[pretrain] resuming from step {start}", flush=True)
     step_key = jax.random.fold_in(key, 2)
     seconds_before, run_start = history_lib.seconds_at(root, "val_metrics", start), time.perf_counter()
-    writer = SummaryWriter(os.path.join(root, "tb"))
+    writer = scalars.Scalars(os.path.join(root, "tb"))
     batches = batches_from(start)
     try:
       for step in tqdm(range(start, tc.steps), initial=start, total=tc.steps, desc=f"pretrain {title}",
@@ -296,8 +295,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
         state, done = new_state, step + 1
         history.append((done, metrics["loss"]))
         if done % tc.log_every == 0 or done == tc.steps:
-          for name, value in metrics.items():
-            writer.add_scalar(f"train/{name}", value, done)
+          writer.write(done, {f"train/{name}": value for name, value in metrics.items()})
         if done % tc.checkpoint_every == 0 or done == tc.steps:
           ckpt.save(done, state)
         if validation and (done % ec.every == 0 or done == tc.steps):
@@ -314,8 +312,7 @@ def _validate(validation: Validation, params, step: int, root: str, config, titl
   and one line to `write`; returns the metrics."""
   result = validation.run(params, step)
   if writer is not None:
-    for name, value in result.items():
-      writer.add_scalar(f"val/{name}", value, step)
+    writer.write(step, {f"val/{name}": value for name, value in result.items()})
   history_lib.record(root, "val_metrics", step, result, seconds, keys=validation.keys,
                      title=f"{title} validation, {config.name}", ylim=validation.ylim)
   write(f"[pretrain] step {step}: {validation.describe(result)}")
