@@ -18,7 +18,6 @@ roboshape.json (a fraction of a second for a :small dataset) and re-collects a m
 recorded seeds; the new file replaces it only when it is byte for byte the recorded one (`repair_shards`).
 """
 import contextlib
-import errno
 import fcntl
 import os
 import time
@@ -27,6 +26,7 @@ from typing import Any, Dict, Iterator, List, Mapping, Sequence
 import tqdm
 
 from roboshape import data as data_lib
+from roboshape import fileio
 from roboshape import rundir
 from roboshape.errors import DiskFull
 from roboshape.errors import UserError
@@ -219,8 +219,8 @@ class _SplitCollector:
   def _commit(self) -> None:
     try:
       self.writer.add_shard(self.split, self.pending, self.pending_failed, next_seed=self.cursor)
-    except OSError as e:
-      if e.errno != errno.ENOSPC:
+    except Exception as e:  # pylint: disable=broad-except
+      if not fileio.disk_full(e):   # OSError(ENOSPC), or a library's error that says the disk is full
         raise
       raise DiskFull(f"{DiskFull.PREFIX} while writing {self.writer.path}: the "
                      f"{self.writer.num_episodes('train')} train and {self.writer.num_episodes('val')} val episodes "
