@@ -204,6 +204,15 @@ def ae_config(variant: str) -> ml_collections.ConfigDict:
   ))
 
 
+def state_config(variant: str) -> ml_collections.ConfigDict:
+  """The `state` encoder, the privileged state as one token (roboshape/encoders/state.py)."""
+  del variant
+  return ml_collections.ConfigDict(dict(
+      # state fields the token leaves out (e.g. ("cube_quat",)): an ablation of what a field is worth
+      withhold=(),
+  ))
+
+
 def baseline_config(variant: str) -> ml_collections.ConfigDict:
   """Frozen global encoders loaded from official checkpoints (roboshape/baselines)."""
   del variant
@@ -306,6 +315,7 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
       pretrain=pretrain_config(scale),
       savi=savi_config(scale),
       ae=ae_config(scale),
+      state=state_config(scale),
       baselines=baseline_config(scale),
       policy=policy_config(scale),
       eval=eval_config(scale),

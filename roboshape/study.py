@@ -63,13 +63,14 @@ def _flatten(tree, prefix: str = "") -> Dict:
 
 
 def changed_fields(config: Dict) -> str:
-  """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults."""
+  """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults (a field added
+  to the configs after the run was made is not among its config's, and is not a change)."""
   from configs import common  # pylint: disable=import-outside-toplevel
   scale = config["variant"].partition("_")[0]
   default = _flatten(common.get_config(config["task"], config["encoder"], scale).to_dict())
   ran = _flatten(config)
-  keys = sorted(k for k in set(ran) | set(default)
-                if ran.get(k) != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))
+  keys = sorted(k for k in ran
+                if ran[k] != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))
   return "; ".join(f"{k}={ran.get(k)!r}" for k in keys)
 
 

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from configs import common
+from roboshape import config_check
 from roboshape import encoders
 from roboshape.errors import UserError
 from roboshape.encoders import state as state_encoder
@@ -69,6 +70,29 @@ def test_the_state_token_is_the_vector_in_decimetres_then_relative_positions():
   assert (scale[:, :4] == 10).all() and (scale[:, 4] == 1).all()
   with pytest.raises(KeyError, match="lacks state"):
     enc.encode_batch({"image": np.zeros((1, 2, 4, 4, 3), np.uint8)})
+
+
+def test_withholding_a_state_field_zeroes_its_entries_and_the_relative_ones_made_from_it_and_nothing_else():
+  config = common.get_config("pick", "state", "tiny")
+  full = encoders.get("state").build(config, "")
+  config.state.withhold = ("cube_quat", "cube_pos")
+  config_check.check(config)
+  part = encoders.get("state").build(config, "")
+  assert part.identity != full.identity and part.token_dim == full.token_dim
+  states = np.random.default_rng(2).normal(size=(2, 3, state_lib.DIM)).astype(np.float32)
+  a = np.asarray(full.encode_batch({"state": states}))[:, :, 0]
+  b = np.asarray(part.encode_batch({"state": states}))[:, :, 0]
+  cuts = state_lib.slices()
+  gone = np.zeros(a.shape[-1], bool)
+  gone[cuts["cube_quat"]] = gone[cuts["cube_pos"]] = True
+  gone[state_lib.DIM:state_lib.DIM + 3] = True          # cube - tcp
+  gone[state_lib.DIM + 6:] = True                        # goal - cube; goal - tcp (entries 3:6) stays
+  assert (b[..., gone] == 0).all() and (a[..., gone] != 0).all()
+  np.testing.assert_array_equal(b[..., ~gone], a[..., ~gone])
+  for bad in (("cube_yaw",), ("gripper", "gripper")):
+    config.state.withhold = bad
+    with pytest.raises(UserError, match=r"^state.withhold=.*: use a tuple of distinct state fields among tcp_pos, "):
+      config_check.check(config)
 
 
 def test_a_dataset_without_state_is_a_one_line_error_for_the_state_encoder(tmp_path):

@@ -8,15 +8,21 @@ These are fixed linear maps of the state, so the token holds the same informatio
 small differences of large coordinates, which is where a policy on the raw vector was imprecise
 (results/small/pick_state/README.md). It needs a dataset that stores `observation/state` (every dataset collected
 since the field exists).
+
+`state.withhold` names FIELDS of the state vector that the token leaves out (their entries zero, and every RELATIVE
+entry computed from one of them zero): an ablation that says what a field is worth to the policy, e.g. the cube's
+orientation, of which the `objects` token holds nothing (its fields: roboshape/encoders/objects.py).
 """
 import numpy as np
 
 from roboshape import encoders
 from roboshape.envs import state as state_lib
+from roboshape.errors import UserError
 
 
-def token_scale() -> np.ndarray:
-  """float32 [DIM]: the factor each entry of the state vector is multiplied by in the token."""
+def token_scale(withhold=()) -> np.ndarray:
+  """float32 [DIM]: the factor each entry of the state vector is multiplied by in the token (0 for the fields in
+  `withhold`)."""
   scale = np.ones((state_lib.DIM,), np.float32)
   cuts = state_lib.slices()
   for name in ("tcp_pos", "gripper", "cube_pos", "goal_pos"):
@@ -24,12 +30,21 @@ def token_scale() -> np.ndarray:
   rows = scale[cuts["distractors"]].reshape(state_lib.MAX_DISTRACTORS, 5)
   rows[:, :4] = 10.0
   scale[cuts["distractors"]] = rows.reshape(-1)
+  for name in withhold:
+    scale[cuts[name]] = 0.0
   return scale
 
 
-def _layout_hash() -> str:
+def relative_scale(withhold=()) -> np.ndarray:
+  """float32 [len(RELATIVE)]: 1 for each RELATIVE entry, 0 where it is computed from a withheld field."""
+  return np.array([0.0 if (a in withhold or b in withhold) else 1.0 for a, b in RELATIVE], np.float32)
+
+
+def _layout_hash(withhold=()) -> str:
   import hashlib  # pylint: disable=import-outside-toplevel
   text = state_lib.describe() + str(token_scale().tolist()) + str(RELATIVE) + str(POSITION_STEP)
+  if withhold:     # the full token's hash is the one every cache made before the option existed carries
+    text += f" withhold {sorted(withhold)}"
   return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
@@ -43,18 +58,36 @@ def _step(params, carry, obs):
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
   state = jnp.asarray(obs["state"], jnp.float32)
   cuts = state_lib.slices()
-  relative = [(state[:, cuts[a]] - state[:, cuts[b]]) / POSITION_STEP for a, b in RELATIVE]
+  relative = [(state[:, cuts[a]] - state[:, cuts[b]]) * (params["relative"][i] / POSITION_STEP)
+              for i, (a, b) in enumerate(RELATIVE)]
   return jnp.concatenate([state * params["scale"]] + relative, axis=-1)[:, None, :], carry
 
 
+def withheld(config) -> tuple:
+  """The fields config.state.withhold names (() without a config, or for one written before the section existed)."""
+  return () if config is None else tuple(config.get("state", {}).get("withhold", ()))
+
+
+def check(config) -> None:
+  """Raises UserError unless state.withhold is a tuple of distinct FIELDS names."""
+  names = tuple(name for name, _, _ in state_lib.FIELDS)
+  value = config.get("state", {}).get("withhold", ())
+  if isinstance(value, str) or not isinstance(value, (tuple, list)) or any(v not in names for v in value) or len(
+      set(value)) != len(value):
+    raise UserError(f"state.withhold={value!r}: use a tuple of distinct state fields among {', '.join(names)} "
+                    "(() withholds nothing).")
+
+
 def _build(config, workdir: str):
-  del config, workdir
+  del workdir
   from roboshape.models.encoder import FrozenEncoder  # pylint: disable=import-outside-toplevel
-  return FrozenEncoder(name="state", params={"scale": token_scale()}, step=_step,
-                       init_state=lambda batch_size: (), num_tokens=1, token_dim=TOKEN_DIM,
-                       identity=f"state:{_layout_hash()}", inputs=("state",))
+  withhold = withheld(config)
+  return FrozenEncoder(name="state", params={"scale": token_scale(withhold), "relative": relative_scale(withhold)},
+                       step=_step, init_state=lambda batch_size: (), num_tokens=1, token_dim=TOKEN_DIM,
+                       identity=f"state:{_layout_hash(withhold)}", inputs=("state",))
 
 
 encoders.register(encoders.Kind(
     name="state", inputs=("state",), pretrain="", build=_build, title="State",
-    description="the privileged simulator state as one token (control: the upper bound)"))
+    description="the privileged simulator state as one token (control: the upper bound)",
+    sections=("state",), check=check))
