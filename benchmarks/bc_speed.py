@@ -51,8 +51,8 @@ def compiled_step(policy_config, tokens: int, token_dim: int, dp=None):
   state = bc.init_state(net, optimizer, (b, h, tokens, token_dim), 0)
   rng = np.random.default_rng(0)
   batch = dict(tokens=rng.normal(size=(b, h, tokens, token_dim)).astype(np.float32),
-               action=rng.uniform(-1, 1, (b, h, pc.chunk, pc.action_dim)).astype(np.float32),
-               mask=np.ones((b, h, pc.chunk), np.float32))
+               action=rng.uniform(-1, 1, (b, h, pc.action_dim)).astype(np.float32),
+               mask=np.ones((b, h), np.float32))
   if dp is not None:
     state, batch = jax.device_put(state, dp.replicated), dp.put_batch(batch)
   key = jax.random.PRNGKey(0)

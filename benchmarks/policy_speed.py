@@ -62,7 +62,7 @@ def bc_epochs(config, encoder, episodes, feature_dir, batch_size, reencode_steps
   """
   pc = config.policy
   data = cache.load_split(feature_dir, "train")
-  windows = bc.Windows(data, pc.history, pc.chunk, ([1.0] * 7, [0.0] * 7))
+  windows = bc.Windows(data, pc.history, ([1.0] * 7, [0.0] * 7))
   frames = np.concatenate([e["image"] for e in episodes], axis=0)           # [F, H, W, 3], same rows as features
   net, optimizer = policy_lib.net_from_config(pc), bc.make_optimizer(pc.train)
   n, d = data["features"].shape[1:]

@@ -7,9 +7,6 @@ the command line as `--config=configs/pick_savi.py:tiny`. Variants:
   small: a scale that trains and evaluates on a 2-core CPU in hours (200 demos per task).
   tiny:  a handful of episodes and steps, for tests and `make demo`.
 
-A `_chunk` suffix (`:small_chunk`, `:paper_chunk`, `:tiny_chunk`) turns on action chunking in the policy: it
-predicts the next 8 actions and ensembles them over time at control time (off in the paper).
-
 Every field can be overridden on the command line, e.g. `--config.policy.train.steps=100`.
 Each section below belongs to one part of the code base (named in its function's docstring).
 """
@@ -23,7 +20,6 @@ from roboshape import rundir
 
 TASKS = envs.TASKS
 VARIANTS = ("paper", "small", "tiny")
-MODIFIERS = {"chunk": 8}   # variant suffix -> policy.chunk
 LEVELS = envs.LEVEL_NAMES  # the training distribution and the three shifts (roboshape/envs/palettes.py)
 STAGES = rundir.STAGES     # every stage, in the order a run takes them
 # How a task's policies are run at control time where it differs from policy_config's eval defaults, for every
@@ -232,11 +228,7 @@ def baseline_config(variant: str) -> ml_collections.ConfigDict:
 
 
 def policy_config(variant: str) -> ml_collections.ConfigDict:
-  """The transformer policy with a GMM head, trained by behaviour cloning (roboshape/models, roboshape/train/bc.py).
-
-  Action chunking (predict the next `chunk` actions, temporal ensembling at control time) is off by default as in
-  the paper; turn it on with `--config.policy.chunk=8`.
-  """
+  """The transformer policy with a GMM head, trained by behaviour cloning (roboshape/models, roboshape/train/bc.py)."""
   return ml_collections.ConfigDict(dict(
       history=10,               # H: frames the trunk sees in training (and the number of time embeddings)
       width=_pick(variant, paper=256, small=128, tiny=32),
@@ -247,7 +239,6 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       action_dim=7,
       num_modes=5,              # GMM modes
       min_scale=1e-4,           # floor on the GMM's softplus scales
-      chunk=1,                  # C: future actions predicted per step (1: no chunking)
       # one more token per frame with the robot's own pose (tool centre point, finger opening) from
       # observation/state (roboshape/encoders/proprio.py); off in the paper, which uses no proprioception
       proprio=False,
@@ -272,7 +263,6 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
           history=0,              # frames seen at control time; 0: the training history
           action="mean",          # "mean": mixture mean; "sample": a mode drawn by weight, low-noise around it
           noise=0.1,              # for action="sample": the fraction of the mode's scale added as noise
-          ensemble_decay=0.01,    # temporal ensembling weights exp(-k * i) with chunk > 1
       )),
   ))
 
@@ -293,14 +283,12 @@ def eval_config(variant: str) -> ml_collections.ConfigDict:
 def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collections.ConfigDict:
   """The full config of one experiment: `task` x `encoder` at the scale `variant`."""
   variant = variant or "paper"
-  scale, _, modifier = variant.partition("_")
   if task not in TASKS:
     raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}.")
   if encoder not in encoders.names():
     raise ValueError(f"unknown encoder {encoder!r}; choose one of {', '.join(encoders.names())}.")
-  if scale not in VARIANTS or (modifier and modifier not in MODIFIERS):
-    raise ValueError(f"unknown variant {variant!r}; use configs/<exp>.py:<variant> with one of {', '.join(VARIANTS)}"
-                     f", optionally suffixed with {', '.join('_' + m for m in MODIFIERS)}.")
+  if variant not in VARIANTS:
+    raise ValueError(f"unknown variant {variant!r}; use configs/<exp>.py:<variant> with one of {', '.join(VARIANTS)}.")
   stages = STAGES if encoders.get(encoder).pretrain else tuple(s for s in STAGES if s != "pretrain")
   config = ml_collections.ConfigDict(dict(
       name=f"{task}_{encoder}",
@@ -309,20 +297,18 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
       variant=variant,
       seed=0,
       stages=stages,
-      env=env_config(scale),
-      sim=sim_config(scale),
-      data=data_config(scale),
-      pretrain=pretrain_config(scale),
-      savi=savi_config(scale),
-      ae=ae_config(scale),
-      state=state_config(scale),
-      baselines=baseline_config(scale),
-      policy=policy_config(scale),
-      eval=eval_config(scale),
+      env=env_config(variant),
+      sim=sim_config(variant),
+      data=data_config(variant),
+      pretrain=pretrain_config(variant),
+      savi=savi_config(variant),
+      ae=ae_config(variant),
+      state=state_config(variant),
+      baselines=baseline_config(variant),
+      policy=policy_config(variant),
+      eval=eval_config(variant),
   ))
   config.policy.eval.update(TASK_CONTROL.get(task, {}))
-  if modifier:
-    config.policy.chunk = MODIFIERS[modifier]
   return config
 
 

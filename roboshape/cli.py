@@ -90,7 +90,7 @@ def _root_cause(e: BaseException) -> str:
 
 def _check_overrides(argv: Sequence[str]) -> None:
   """Parses the flags; a bad config file or an unknown --config.x.y fails with one clear line (naming the new key of
-  a moved one, rundir.RENAMED)."""
+  a moved one, rundir.RENAMED, or why a removed one left, rundir.REMOVED)."""
   config_args = [a for a in argv[1:] if a.startswith("--config=")]
   if config_args and "config" in flags.FLAGS:
     spec = config_args[-1].split("=", 1)[1]
@@ -109,6 +109,8 @@ def _check_overrides(argv: Sequence[str]) -> None:
       key = arg.split("=", 1)[0][len("--config."):]
       if key in prefixes:
         continue
+      if key in rundir.REMOVED:
+        raise UserError(f"config key {key!r} was removed: {rundir.REMOVED[key][1]}; drop --config.{key}")
       if key in rundir.RENAMED:
         raise UserError(f"config key {key!r} is now {rundir.RENAMED[key]!r} (the pretrain section, shared by every "
                         f"pretrained encoder): use --config.{rundir.RENAMED[key]}=...")

@@ -23,7 +23,9 @@ above, and the choice among them:
 and with policy.train_seeds one policy per seed in policy/seed_<s>/. With seeds = () (the default) there is one
 run, with config.seed, in the stage's folder itself.
 
-A config.json written before the pretrain section existed is read through `upgrade_config` (RENAMED).
+A config.json written before the pretrain section existed is read through `upgrade_config` (RENAMED). Fields that
+left the configs are in REMOVED; a run trained with one of them that today's code cannot load is refused by
+`check_no_chunks` where a workdir's policy is loaded or its run resumed.
 """
 import contextlib
 import fcntl
@@ -49,6 +51,15 @@ RENAMED = {
         "checkpoint_every", "keep_checkpoints", "log_every")},
     "savi.train.seeds": "pretrain.train_seeds",
     **{f"savi.eval.{f}": f"pretrain.eval.{f}" for f in ("every", "episodes", "frames")},
+}
+# Fields that left the configs, old dotted name -> (the default it had, why it left). A command line that sets one
+# is refused in one line saying why (roboshape/cli.py); an old run's config.json keeps it, roboshape/study.py counts
+# it as a change only where it differs from that default, and the evaluation's policy fingerprint hashes the
+# policy.eval ones at it (roboshape/eval/closed_loop.py), so old evaluation logs still resume.
+_CHUNKING = "action chunking lost its comparison (results/small/recipe/README.md)"
+REMOVED = {
+    "policy.chunk": (1, _CHUNKING),
+    "policy.eval.ensemble_decay": (0.01, _CHUNKING),
 }
 # The AE's fields that were read from the savi section before the AE had its own (its ae section's defaults).
 _AE_FROM_SAVI = ("pool", "encoder", "decoder.grid_size", "decoder.features", "decoder.kernel_size",
@@ -87,6 +98,17 @@ def load_config(workdir: str):
     raise UserError(f"{path} is damaged (a JSON {type(data).__name__}, not a config): restore it rather than "
                     "deleting the run.")
   return ml_collections.ConfigDict(upgrade_config(data))
+
+
+def check_no_chunks(config, workdir: str) -> None:
+  """Raises a one-line UserError when `config` (the config.json of the run in `workdir`, a dict or a ConfigDict)
+  was trained with action chunks (policy.chunk > 1): today's policy predicts one action a step, so that run's
+  checkpoints do not fit it. A policy.chunk of 1, or none, is today's policy."""
+  chunk = (config.get("policy") or {}).get("chunk", 1)
+  if chunk != 1:
+    raise UserError(f"{config_path(workdir)} is a run trained with action chunks (policy.chunk={chunk}), which this "
+                    f"roboshape no longer has: {_CHUNKING}; load it with the roboshape commit it was trained with "
+                    "(nothing in it was changed).")
 
 
 def upgrade_config(data: dict) -> dict:

@@ -65,7 +65,8 @@ def _run_identity(config) -> dict:
 
 
 def _check_same_run(config, workdir: str) -> None:
-  """Raises UserError when `workdir` already holds the config.json of another run (see `_run_identity`)."""
+  """Raises UserError when `workdir` already holds the config.json of another run (see `_run_identity`), or of a
+  run today's code cannot resume (rundir.check_no_chunks)."""
   path = rundir.config_path(workdir)
   if not os.path.exists(path):
     return
@@ -76,6 +77,7 @@ def _check_same_run(config, workdir: str) -> None:
       raise ValueError("not a JSON object")
   except (OSError, ValueError) as e:
     raise UserError(f"{path} is not a readable roboshape config.json ({e}); use another --workdir.") from None
+  rundir.check_no_chunks(stored, workdir)
   mine, theirs = _run_identity(config), _run_identity(stored)
   differences = [f"{key}: {theirs[key]!r} in {path}, {mine[key]!r} in this config"
                  for key in mine if key in theirs and theirs[key] != mine[key]]

@@ -5,9 +5,10 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
 
   probe, task, encoder, variant   the run's identity
   changed                         every config field that differs from `configs/common.get_config(task, encoder,
-                                  scale)`, the variant's scale without its modifier (`small` for `small_chunk`, so a
-                                  modifier shows as the fields it sets), except the bookkeeping ones (IGNORED: the
-                                  dataset path, worker count, the evaluated levels, stages, seeds of the run itself)
+                                  scale)`, scale the variant up to any "_" (an old run's may carry a suffix, e.g.
+                                  small_chunk), or for a field removed from the configs from the default it had
+                                  (rundir.REMOVED), except the bookkeeping ones (IGNORED: the dataset path, worker
+                                  count, the evaluated levels, stages, seeds of the run itself)
   rollouts, successes, success    the evaluation's rollouts at the train level (every training seed pooled)
   reached                         per milestone of the task, how many of those rollouts reached it
   val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
@@ -64,10 +65,12 @@ def _flatten(tree, prefix: str = "") -> Dict:
 
 def changed_fields(config: Dict) -> str:
   """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults (a field added
-  to the configs after the run was made is not among its config's, and is not a change)."""
+  to the configs after the run was made is not among its config's, and is not a change; one removed since is
+  compared with the default it had, rundir.REMOVED)."""
   from configs import common  # pylint: disable=import-outside-toplevel
   scale = config["variant"].partition("_")[0]
-  default = _flatten(common.get_config(config["task"], config["encoder"], scale).to_dict())
+  default = {**{k: d for k, (d, _) in rundir.REMOVED.items()},
+             **_flatten(common.get_config(config["task"], config["encoder"], scale).to_dict())}
   ran = _flatten(config)
   keys = sorted(k for k in ran
                 if ran[k] != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))

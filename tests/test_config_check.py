@@ -169,9 +169,7 @@ def _shipped_configs():
     if name in ("__init__", "common"):
       continue
     module = importlib.import_module(f"configs.{name}")
-    variants = common.VARIANTS if name == "reproduce" else [
-        v + suffix for v in common.VARIANTS for suffix in ("", *("_" + m for m in common.MODIFIERS))]
-    for variant in variants:
+    for variant in common.VARIANTS:
       yield f"{name}:{variant}", module.get_config(variant)
 
 

@@ -69,7 +69,7 @@ if phase == "one":                                                 # evaluate wh
   with open(os.path.join(policy_dir, "policy", "norm_stats.json")) as f:
     stats = json.load(f)
   pc = config.policy
-  windows = bc.Windows(cache.load_split(features, "val"), pc.history, pc.chunk, (stats["scale"], stats["offset"]))
+  windows = bc.Windows(cache.load_split(features, "val"), pc.history, (stats["scale"], stats["offset"]))
   val = bc.evaluate(bc.make_eval_step(net), params, windows, pc.train.val_batch_size, pc.train.max_val_samples,
                     stats["scale"])
   np.testing.assert_allclose(val["nll"], summary["val_nll"], rtol=1e-5)

@@ -1,6 +1,7 @@
 """launch.py: config variants, command-line overrides, and one-line errors for bad input."""
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -8,6 +9,8 @@ import pytest
 
 from configs import common
 from roboshape import encoders
+from roboshape import stages
+from roboshape.errors import UserError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -80,13 +83,32 @@ def test_place_policies_are_run_with_a_sampled_mode_and_one_frame_whatever_the_e
         assert (control.action, control.history) == ("mean", 0)
 
 
-def test_chunk_variant_turns_on_action_chunking():
-  assert common.get_config("pick", "savi", "small").policy.chunk == 1
-  chunked = common.get_config("pick", "savi", "small_chunk")
-  assert chunked.policy.chunk == 8
-  assert chunked.data.train_episodes == common.get_config("pick", "savi", "small").data.train_episodes
-  with pytest.raises(ValueError, match="unknown variant 'small_fast'"):
-    common.get_config("pick", "savi", "small_fast")
+@pytest.mark.parametrize("args, expected", [
+    (("--config=configs/push_objects.py:small_chunk",),
+     "unknown variant 'small_chunk'; use configs/<exp>.py:<variant> with one of paper, small, tiny."),
+    (("--config=configs/push_objects.py:small", "--config.policy.chunk=8"),
+     "config key 'policy.chunk' was removed: action chunking lost its comparison (results/small/recipe/README.md); "
+     "drop --config.policy.chunk\n"),
+])
+def test_action_chunking_asked_for_is_one_line_and_exit_2(tmp_path, args, expected):
+  out = _launch(*args, "--config.stages=()", workdir=str(tmp_path))
+  assert out.returncode == 2
+  assert out.stderr.count("\n") == 1 and expected in out.stderr, out.stderr
+  assert not os.listdir(tmp_path)
+
+
+def test_a_run_trained_with_action_chunks_is_not_resumed_and_its_config_is_kept(tmp_path):
+  workdir = tmp_path / "old"
+  workdir.mkdir()
+  chunked = os.path.join(ROOT, "results", "small", "recipe", "push_objects_2000_chunk", "config.json")
+  shutil.copy(chunked, workdir / "config.json")
+  before = (workdir / "config.json").read_bytes()
+  config = common.get_config("push", "objects", "small")
+  config.stages = ()
+  with pytest.raises(UserError, match=r"old/config.json is a run trained with action chunks \(policy.chunk=8\), "
+                     r"which this roboshape no longer has: action chunking lost its comparison"):
+    stages.run(config, str(workdir))
+  assert sorted(os.listdir(workdir)) == ["config.json"] and (workdir / "config.json").read_bytes() == before
 
 
 def test_override_sets_a_nested_field_from_a_python_literal():
@@ -118,8 +140,8 @@ def test_host_devices_one_per_core_of_the_process(monkeypatch):
 
 def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields():
   """The committed :small runs' config.json hold SAVi's training settings in savi.train/savi.eval and the AE's frame
-  model nowhere: read back (rundir.load_config), they are today's fields with their values, and differ from
-  today's :small defaults only in the field they predate (policy.proprio)."""
+  model nowhere: read back (rundir.load_config), they are today's fields with their values, and the study finds no
+  change against today's :small defaults (a field they predate, such as policy.proprio, is none)."""
   from roboshape import rundir  # pylint: disable=import-outside-toplevel
   from roboshape import study  # pylint: disable=import-outside-toplevel
   folder = os.path.join(ROOT, "results", "small", "push_ae")
@@ -131,6 +153,6 @@ def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields()
   assert (config.pretrain.train.clip_norm, config.pretrain.train.clip_norm_of) == (0.05, "mean")
   assert config.pretrain.eval.frames == old["savi"]["eval"]["frames"] and "train" not in config.savi
   assert config.ae.encoder.to_dict() == old["savi"]["encoder"] and config.ae.pool == old["savi"]["pool"]
-  assert study.changed_fields(config.to_dict()) == "policy.proprio=None"
+  assert "proprio" not in old["policy"] and study.changed_fields(config.to_dict()) == ""
   today = common.get_config("push", "ae", "small").to_dict()
   assert rundir.upgrade_config(today) == today                        # today's configs come back as they are

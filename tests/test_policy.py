@@ -2,6 +2,7 @@
 cache, checkpoints and the closed-loop controller (one compilation)."""
 import json
 import os
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +15,7 @@ from configs import common
 from roboshape import data as data_lib
 from roboshape import encoders
 from roboshape import rundir
+from roboshape.errors import UserError
 from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.models.encoder import FrozenEncoder
@@ -69,7 +71,7 @@ def _config(steps=400):
 
 
 def test_gmm_log_prob_matches_scipy():
-  logits = np.array([[0.3, -1.0, 2.0]])                                # [C=1, M=3]
+  logits = np.array([[0.3, -1.0, 2.0]])                                # [B=1, M=3]
   means = np.array([[[0.1, -0.2], [0.5, 0.5], [-0.7, 0.0]]])           # [1, 3, A=2]
   scales = np.array([[[0.3, 0.2], [1.0, 0.5], [0.05, 0.4]]])
   x = np.array([[-0.6, 0.1]])
@@ -84,10 +86,10 @@ def test_gmm_log_prob_matches_scipy():
 
 
 def test_gmm_head_bounds():
-  head = heads.GMMHead(action_dim=7, num_modes=5, chunk=2, min_scale=1e-4, hidden=8)
+  head = heads.GMMHead(action_dim=7, num_modes=5, min_scale=1e-4, hidden=8)
   x = 100.0 * jax.random.normal(jax.random.PRNGKey(0), (3, 4))
   gmm = jax.jit(lambda x: head.apply(head.init(jax.random.PRNGKey(1), x), x))(x)
-  assert gmm.logits.shape == (3, 2, 5) and gmm.means.shape == gmm.scales.shape == (3, 2, 5, 7)
+  assert gmm.logits.shape == (3, 5) and gmm.means.shape == gmm.scales.shape == (3, 5, 7)
   assert float(jnp.abs(gmm.means).max()) <= 1.0 and float(gmm.scales.min()) >= np.float32(1e-4)
 
 
@@ -179,7 +181,7 @@ def test_checkpoint_round_trip_and_resume_skips(run, capsys):
   leaves = jax.tree.leaves(params)
   assert all(np.isfinite(np.asarray(x)).all() for x in leaves)
   assert any(not np.allclose(a, b) for a, b in zip(leaves, jax.tree.leaves(params_mid)))
-  windows = bc.Windows(cache.load_split(run["features"], "val"), H, 1, ([1.0] * 7, [0.0] * 7))
+  windows = bc.Windows(cache.load_split(run["features"], "val"), H, ([1.0] * 7, [0.0] * 7))
   val = bc.evaluate(bc.make_eval_step(net), params, windows, 8, 1000, [1.0] * 7)
   np.testing.assert_allclose(val["nll"], run["summary"]["val_nll"], rtol=1e-5)
   np.testing.assert_allclose(val["action_mse"], run["summary"]["val_action_mse"], rtol=1e-5)
@@ -198,7 +200,7 @@ def test_controller_matches_training_and_compiles_once(run, monkeypatch):
   feats = cache.load_split(run["features"], "train")["features"]
   windows = np.stack([feats[np.clip(np.arange(H) + max(0, t - H + 1), 0, t)] for t in range(len(actions))])
   gmm = jax.jit(policy.net.apply)(policy.params, windows, np.minimum(np.arange(len(actions)), H - 1)[:, None])
-  np.testing.assert_allclose(actions, np.asarray(heads.gmm_mean(gmm))[:, 0, 0], atol=1e-5)
+  np.testing.assert_allclose(actions, np.asarray(heads.gmm_mean(gmm))[:, 0], atol=1e-5)
   mse = float(np.mean((actions - episode["action"]) ** 2))
   assert mse < 0.01, mse
   # A batch of two envs; resetting env 1 alone restarts its episode and leaves env 0's memory alone.
@@ -213,81 +215,41 @@ def test_controller_matches_training_and_compiles_once(run, monkeypatch):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Windows and action chunking.
+# Windows.
 
 
-def test_windows_cover_every_action_with_chunk_targets():
-  # Two episodes of 4 and 2 actions (5 and 3 frames); feature value = global frame index.
-  data = dict(features=np.arange(8, dtype=np.float32).reshape(8, 1, 1),
-              action=np.repeat(np.arange(8, dtype=np.float32)[:, None], 7, axis=1),
-              offsets=np.array([0, 5, 8]), success=np.array([True, True]))
-  w = bc.Windows(data, history=3, chunk=2, normalise=([2.0] * 7, [1.0] * 7))
-  assert len(w) == 2 + 1                                 # T - H + 1 windows, at least one per episode
-  b = w.gather(np.arange(3))
-  np.testing.assert_array_equal(b["tokens"][:, :, 0, 0], [[0, 1, 2], [1, 2, 3], [5, 6, 7]])
-  np.testing.assert_array_equal(b["action"][1, :, :, 0] * 2 + 1, [[1, 2], [2, 3], [3, 4]])
-  np.testing.assert_array_equal(b["mask"][1], [[1, 1], [1, 1], [1, 0]])    # action 4 does not exist
-  np.testing.assert_array_equal(b["mask"][2], [[1, 1], [1, 0], [0, 0]])    # short episode: past its end
+def test_windows_cover_every_action_and_target_each_positions_own():
+  # Episodes of 4, 2 and 1 actions (5, 3 and 2 frames); feature value = global frame index, action = 10 x it.
+  data = dict(features=np.arange(10, dtype=np.float32).reshape(10, 1, 1),
+              action=np.repeat(10.0 * np.arange(10, dtype=np.float32)[:, None], 7, axis=1),
+              offsets=np.array([0, 5, 8, 10]), success=np.array([True, True, True]))
+  w = bc.Windows(data, history=3, normalise=([2.0] * 7, [1.0] * 7))
+  assert len(w) == 2 + 1 + 1                             # T - H + 1 windows, at least one per episode
+  b = w.gather(np.arange(4))
+  assert b["action"].shape == (4, 3, 7) and b["mask"].shape == (4, 3)
+  np.testing.assert_array_equal(b["tokens"][:, :, 0, 0], [[0, 1, 2], [1, 2, 3], [5, 6, 7], [8, 9, 9]])
+  np.testing.assert_array_equal(b["action"][:, :, 0] * 2 + 1,
+                                [[0, 10, 20], [10, 20, 30], [50, 60, 70], [80, 90, 90]])
+  # An episode's last frame has no action, nor do the repeats of it that pad an episode shorter than H.
+  np.testing.assert_array_equal(b["mask"], [[1, 1, 1], [1, 1, 1], [1, 1, 0], [1, 0, 0]])
 
 
-def test_temporal_ensembling_of_chunks():
-  net = policy_lib.PolicyNet(width=8, num_layers=1, num_heads=1, dropout=0.0, max_history=2, num_modes=2, chunk=3)
-  enc = _toy_encoder()
-  params = jax.jit(net.init)(jax.random.PRNGKey(0), jnp.zeros((1, 2, K, D)), jnp.zeros((1, 1), jnp.int32))
-  decay = 0.5
-  policy = policy_lib.Policy(net, params, enc, policy_lib.ControlSpec(history=2, ensemble_decay=decay),
-                             [1.0] * 7, [0.0] * 7)
-  frames = np.random.default_rng(0).integers(0, 255, (4, RES, RES, 3), dtype=np.uint8)
-  policy.reset()
-  actions = np.stack([policy.act(f) for f in frames])
-  tokens = np.asarray(enc.encode_episode(jnp.asarray(frames)))
-  apply = jax.jit(lambda x, q: heads.gmm_mean(net.apply(params, x, q))[0, 0])
-  chunks = []                                            # chunk predicted at step t: [3, 7]
-  for t in range(4):
-    window = tokens[max(0, t - 1):max(0, t - 1) + 2][None]   # at t = 0 frame 1 is a future frame: not seen
-    chunks.append(np.asarray(apply(window, np.array([[min(t, 1)]]))))
-  for t in range(4):
-    ages = range(min(t, 2) + 1)                          # predictions for step t made 0, 1, 2 steps ago
-    weights = np.array([np.exp(decay * j) for j in ages])
-    expected = sum(wj * chunks[t - j][j] for wj, j in zip(weights, ages)) / weights.sum()
-    np.testing.assert_allclose(actions[t], expected, atol=1e-5)
-
-
-def test_a_sampled_episode_depends_on_its_seed_alone():
-  net = policy_lib.PolicyNet(width=8, num_layers=1, num_heads=1, dropout=0.0, max_history=2, num_modes=3)
-  params = jax.jit(net.init)(jax.random.PRNGKey(0), jnp.zeros((1, 2, K, D)), jnp.zeros((1, 1), jnp.int32))
-  policy = policy_lib.Policy(net, params, _toy_encoder(), policy_lib.ControlSpec(history=2, action="sample",
-                                                                                noise=1.0), [1.0] * 7, [0.0] * 7)
-  frames = np.random.default_rng(0).integers(0, 255, (3, RES, RES, 3), dtype=np.uint8)
-  policy.reset(batch_size=1, seeds=[1000])
-  alone = [policy.act(f) for f in frames]
-  policy.reset(batch_size=2, seeds=[7, 8])
-  policy.act_batch(np.stack([frames[0], frames[0]]))               # another episode ran in slot 1 before
-  policy.reset_slots([1], seeds=[1000])
-  paired = [policy.act_batch(np.stack([frames[(t + 1) % 3], f]))[1] for t, f in enumerate(frames)]
-  np.testing.assert_allclose(paired, alone, atol=1e-5)              # same seed, same draws, whatever its company
-  policy.reset(batch_size=1, seeds=[1001])
-  other = [policy.act(f) for f in frames]
-  assert not np.allclose(other, alone, atol=1e-3)                   # another seed, other draws
-
-
-def test_training_seeds_train_one_policy_each_and_resume_skips(run, monkeypatch, capsys):
+def test_a_run_trained_with_action_chunks_is_refused_in_one_line_and_one_without_loads(run, tmp_path, monkeypatch):
   monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: run["encoder"])
-  config = _config(steps=20)
-  config.policy.train_seeds = (3, 4)
-  bc.run(config, run["workdir"])                             # the cache is there: trains the two policies
-  params = {}
-  for seed in (3, 4):
-    out = rundir.policy_dir(run["workdir"], seed)
-    assert out == os.path.join(run["workdir"], "policy", f"seed_{seed}")
-    assert os.path.isfile(os.path.join(out, bc.SUMMARY_FILE)) and os.path.isfile(os.path.join(out, "encoder.json"))
-    params[seed] = bc.load_params(config, run["workdir"], K, D, train_seed=seed)[1]
-  assert any(not np.allclose(a, b) for a, b in zip(*(jax.tree.leaves(p) for p in params.values())))
-  capsys.readouterr()
-  bc.run(config, run["workdir"])
-  out = capsys.readouterr().out
-  assert "training seed 3: already trained" in out and "training seed 4: already trained" in out
-  assert "train_policy:" not in out
+  old = run["config"].to_dict()
+  old["policy"]["chunk"], old["policy"]["eval"]["ensemble_decay"] = 1, 0.01       # a config.json of before
+  old_run = str(tmp_path / "old")
+  shutil.copytree(os.path.join(run["workdir"], "policy"), os.path.join(old_run, "policy"))
+  with open(rundir.config_path(old_run), "w") as f:
+    json.dump(old, f)
+  params = bc.load_policy(old_run).params
+  same = bc.load_params(run["config"], run["workdir"], K, D)[1]
+  assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(same)))
+  old["policy"]["chunk"] = 8
+  with open(rundir.config_path(old_run), "w") as f:
+    json.dump(old, f)
+  with pytest.raises(UserError, match=r"old/config.json is a run trained with action chunks \(policy.chunk=8\)"):
+    bc.load_policy(old_run)
 
 
 _TWO_DEVICES = r'''
@@ -302,8 +264,8 @@ net, optimizer = policy_lib.net_from_config(pc), bc.make_optimizer(pc.train)
 b, h, n, d = 4, pc.history, 3, 8
 rng = np.random.default_rng(0)
 batches = [dict(tokens=rng.normal(size=(b, h, n, d)).astype(np.float32),
-                action=rng.uniform(-1, 1, (b, h, pc.chunk, pc.action_dim)).astype(np.float32),
-                mask=np.ones((b, h, pc.chunk), np.float32)) for _ in range(3)]
+                action=rng.uniform(-1, 1, (b, h, pc.action_dim)).astype(np.float32),
+                mask=np.ones((b, h), np.float32)) for _ in range(3)]
 step, key, dp = bc.make_train_step(net, optimizer), jax.random.PRNGKey(3), sharding.DataParallel(b, 2 * b)
 assert dp.num_devices == 2 and sharding.DataParallel(3).num_devices == 1 and sharding.DataParallel(6, 3).num_devices == 1
 one = bc.init_state(net, optimizer, (b, h, n, d), 0)

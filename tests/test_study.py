@@ -13,14 +13,23 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RECIPE = os.path.join(ROOT, "results", "small", "recipe")
 
 
-def _fake_run(workdir, variant="small", **changes):
+def _fake_run(workdir, variant="small", stored=None, **changes):
+  """A run's files; `stored` {dotted field: value} is written into its config.json as it stands (e.g. a field
+  today's configs no longer have)."""
   config = common.get_config("push", "objects", variant)
   for field, value in changes.items():
     common.override(config, f"{field}={value!r}")
+  data = config.to_dict()
+  for field, value in (stored or {}).items():
+    *parents, leaf = field.split(".")
+    node = data
+    for key in parents:
+      node = node[key]
+    node[leaf] = value
   os.makedirs(os.path.join(workdir, "eval"))
   os.makedirs(os.path.join(workdir, "policy"))
   with open(os.path.join(workdir, "config.json"), "w") as f:
-    json.dump(config.to_dict(), f)
+    json.dump(data, f)
   rows = [dict(task="push", encoder="objects", train_seed="", level=level, seed_index=0, rollout=i, seed=i,
                success=str(i < 3), length=10, ended="", reached="moved+halfway+on_target" if i < 3 else
                ("moved" if i == 3 else "")) for level in ("train", "L1") for i in range(5)]
@@ -47,11 +56,14 @@ def test_a_probe_row_reads_the_runs_files_and_names_only_what_changed(tmp_path):
   assert (row["train_policy_s"], row["pretrain_s"], row["core_hours"]) == ("600", "", f"{720 * 2 / 3600:.2f}")
 
 
-def test_a_variant_modifier_shows_as_the_fields_it_sets(tmp_path):
-  workdir = str(tmp_path / "run")
-  _fake_run(workdir, variant="small_chunk", **{"data.train_episodes": 2000})
-  chunk = common.MODIFIERS["chunk"]
-  assert study.probe_row(workdir, "chunk")["changed"] == f"data.train_episodes=2000; policy.chunk={chunk}"
+def test_a_removed_field_counts_as_changed_where_it_differs_from_the_default_it_had(tmp_path):
+  # An old probe of the removed "_chunk" variant: its variant names the scale before the "_".
+  removed = {"variant": "small_chunk", "policy.chunk": 8, "policy.eval.ensemble_decay": 0.01}
+  _fake_run(str(tmp_path / "chunk"), stored=removed, **{"data.train_episodes": 2000})
+  row = study.probe_row(str(tmp_path / "chunk"), "chunk")
+  assert (row["variant"], row["changed"]) == ("small_chunk", "data.train_episodes=2000; policy.chunk=8")
+  _fake_run(str(tmp_path / "plain"), stored=dict(removed, variant="small", **{"policy.chunk": 1}))
+  assert study.probe_row(str(tmp_path / "plain"), "plain")["changed"] == "(none)"
 
 
 def test_adding_probes_rewrites_the_csv_and_the_readme_block_only(tmp_path):

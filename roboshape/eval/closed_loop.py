@@ -179,6 +179,12 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
   return x if len(x) == n else np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:], x.dtype)])
 
 
+# The control settings removed from the configs (rundir.REMOVED) at the defaults they had, hashed along with
+# today's (`policy_fingerprint`), so that an evaluation log written while they existed still resumes.
+_REMOVED_CONTROL = {k.rsplit(".", 1)[1]: default for k, (default, _) in rundir.REMOVED.items()
+                    if k.startswith("policy.eval.")}
+
+
 def policy_fingerprint(workdir: str, train_seed=None, control=None) -> str:
   """Identifies the trained policy (its checkpoint steps and their times) and how it is run (`control`, the
   config.policy.eval settings: history, action read-out): results of another policy, or of the same one run
@@ -187,7 +193,7 @@ def policy_fingerprint(workdir: str, train_seed=None, control=None) -> str:
   entries = sorted(os.listdir(ckpt)) if os.path.isdir(ckpt) else []
   text = ";".join(f"{e}:{int(os.path.getmtime(os.path.join(ckpt, e)))}" for e in entries)
   if control:
-    text += ";" + json.dumps(dict(control), sort_keys=True)
+    text += ";" + json.dumps({**_REMOVED_CONTROL, **dict(control)}, sort_keys=True)
   return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 

@@ -20,7 +20,7 @@ frames of a window are themselves a valid window, so episode starts need no padd
 reads out at position t of a window that holds frames 0..t (see roboshape/train/bc.py).
 
   net = PolicyNet(width=256, num_layers=8, num_heads=4, max_history=10)
-  gmm = net.apply(params, tokens, act_frames)   # tokens [B, T, N, D], act_frames int [B, Q] -> GMM [B, Q, C, M, A]
+  gmm = net.apply(params, tokens, act_frames)   # tokens [B, T, N, D], act_frames int [B, Q] -> GMM [B, Q, M, A]
 
 The `Policy` class at the end is the stateful closed-loop controller that wraps the frozen encoder and this net.
 """
@@ -122,7 +122,7 @@ class Trunk(nn.Module):
 
 
 class PolicyNet(nn.Module):
-  """The trunk followed by the GMM head: tokens [B, T, N, D], act_frames [B, Q] -> GMM with [B, Q, C, M, A] leaves."""
+  """The trunk followed by the GMM head: tokens [B, T, N, D], act_frames [B, Q] -> GMM with [B, Q, M, A] leaves."""
   width: int = 256
   num_layers: int = 8
   num_heads: int = 4
@@ -131,15 +131,13 @@ class PolicyNet(nn.Module):
   max_history: int = 10
   action_dim: int = 7
   num_modes: int = 5
-  chunk: int = 1
   min_scale: float = 1e-4
 
   @nn.compact
   def __call__(self, tokens, act_frames, train: bool = False) -> heads.GMM:
     h = Trunk(self.width, self.num_layers, self.num_heads, self.mlp_ratio, self.dropout, self.max_history,
               name="trunk")(tokens, act_frames, train)
-    return heads.GMMHead(self.action_dim, self.num_modes, self.chunk, self.min_scale, hidden=self.width,
-                         name="head")(h)
+    return heads.GMMHead(self.action_dim, self.num_modes, min_scale=self.min_scale, hidden=self.width, name="head")(h)
 
 
 def net_from_config(policy_config) -> PolicyNet:
@@ -147,11 +145,11 @@ def net_from_config(policy_config) -> PolicyNet:
   c = policy_config
   return PolicyNet(width=c.width, num_layers=c.num_layers, num_heads=c.num_heads, mlp_ratio=c.mlp_ratio,
                    dropout=c.dropout, max_history=c.history, action_dim=c.action_dim, num_modes=c.num_modes,
-                   chunk=c.chunk, min_scale=c.min_scale)
+                   min_scale=c.min_scale)
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# Closed-loop control: the frozen encoder's state, the token history and the chunk ensemble, carried between steps.
+# Closed-loop control: the frozen encoder's state and the token history, carried between steps.
 
 
 class Carry(NamedTuple):
@@ -161,7 +159,6 @@ class Carry(NamedTuple):
     enc_state: the encoder's recurrent state (every leaf with a leading batch axis B).
     history: [B, H, N, D] tokens of the last frames, oldest first; rows >= count are unused.
     count: int32 [B], frames seen since the env's reset.
-    chunks: [B, C, C, A] normalised action chunks predicted 0..C-1 steps ago (row j: j steps ago).
     rng: [B, 2] one PRNG key per env for sampled actions, set at the env's reset from the policy's seed and the
       episode's seed, so an episode's sampled actions depend on nothing else (not on which envs share its batch,
       nor on what ran before it: an evaluation resumed after a kill repeats them).
@@ -169,7 +166,6 @@ class Carry(NamedTuple):
   enc_state: Any
   history: jax.Array
   count: jax.Array
-  chunks: jax.Array
   rng: jax.Array
 
 
@@ -184,13 +180,10 @@ class ControlSpec:
     history: frames the trunk sees at control time (<= the training history).
     action: "mean" (mixture mean) or "sample" (a mode drawn by weight plus `noise` x its scale).
     noise: the sampling noise scale, for action="sample".
-    ensemble_decay: k in the temporal ensembling weights exp(-k * i), i = 0 for the oldest prediction of the
-      current step (only with chunk > 1).
   """
   history: int
   action: str = "mean"
   noise: float = 0.1
-  ensemble_decay: float = 0.01
 
 
 def control_step(net: PolicyNet, spec: ControlSpec, encoder_step: Callable, norm_scale, norm_offset,
@@ -203,23 +196,15 @@ def control_step(net: PolicyNet, spec: ControlSpec, encoder_step: Callable, norm
   slot = jnp.minimum(carry.count, h - 1)                                            # [B]
   history = history.at[jnp.arange(b), slot].set(tokens.astype(history.dtype))
   gmm = net.apply(params, history, slot[:, None], train=False)
-  gmm = jax.tree.map(lambda v: v[:, 0], gmm)                                        # [B, C, M, A] leaves
+  gmm = jax.tree.map(lambda v: v[:, 0], gmm)                                        # [B, M, A] leaves
   keys = jax.vmap(jax.random.split)(carry.rng)                                      # [B, 2, 2]
   rng = keys[:, 0]
   if spec.action == "mean":
-    chunk = heads.gmm_mean(gmm)                                                     # [B, C, A]
+    action = heads.gmm_mean(gmm)                                                    # [B, A]
   else:
-    chunk = jax.vmap(lambda g, k: heads.gmm_sample(g, k, spec.noise))(gmm, keys[:, 1])
-  count = carry.count + 1
-  chunks = jnp.roll(carry.chunks, 1, axis=1).at[:, 0].set(chunk)
-  c = chunks.shape[1]
-  age = jnp.arange(c)
-  now = chunks[:, age, age]                                                         # [B, C(age), A]
-  valid = age[None, :] < count[:, None]                                             # [B, C]
-  weights = jnp.where(valid, jnp.exp(spec.ensemble_decay * age.astype(jnp.float32))[None], 0.0)
-  action = jnp.sum(weights[..., None] * now, axis=1) / jnp.sum(weights, axis=1, keepdims=True)
+    action = jax.vmap(lambda g, k: heads.gmm_sample(g, k, spec.noise))(gmm, keys[:, 1])
   action = action * norm_scale + norm_offset
-  return action.astype(jnp.float32), Carry(enc_state, history, count, chunks, rng)
+  return action.astype(jnp.float32), Carry(enc_state, history, carry.count + 1, rng)
 
 
 class Policy:
@@ -268,7 +253,6 @@ class Policy:
         enc_state=enc.init_state(batch_size),
         history=jnp.zeros((batch_size, self.spec.history, enc.num_tokens, enc.token_dim), self._token_dtype),
         count=jnp.zeros((batch_size,), jnp.int32),
-        chunks=jnp.zeros((batch_size, self.net.chunk, self.net.chunk, self.net.action_dim), jnp.float32),
         rng=keys), jax.devices()[0])
 
   def reset(self, batch_size: int = 1, seeds: Optional[Sequence[int]] = None) -> None:

@@ -4,8 +4,8 @@
   policy = roboshape.load_policy(workdir)      # load_policy below: a roboshape.models.policy.Policy (reset, act)
 
 Samples. A sample is a window of H consecutive cached frames of one training episode, frames s .. s+H-1 with
-s uniform over the episode's windows; the [ACT] token of window position p predicts action s+p (and the next
-C-1 with chunking), every position is a target (NLL averaged over them). Episode starts need no padding:
+s uniform over the episode's windows; the [ACT] token of window position p predicts action s+p, and every
+position is a target (NLL averaged over them). Episode starts need no padding:
 the trunk is causal over time, so positions 0..p of the window starting at frame 0 are exactly what control sees
 at step p < H (it reads out at the newest frame of a growing history; see roboshape/models/policy.py). Episodes
 shorter than H repeat their last frame and mask the targets past their end. Only successful demos are used.
@@ -68,13 +68,12 @@ class Windows:
   Args:
     data: `cache.load_split` output (features [F, N, D], action [F, A], offsets [E + 1], success [E]).
     history: H.
-    chunk: C.
     normalise: (scale, offset) arrays [A]; targets are (action - offset) / scale.
     successful_only: drop failed episodes.
   """
 
-  def __init__(self, data: dict, history: int, chunk: int, normalise, successful_only: bool = True):
-    self.features, self.history, self.chunk = data["features"], history, chunk
+  def __init__(self, data: dict, history: int, normalise, successful_only: bool = True):
+    self.features, self.history = data["features"], history
     scale, offset = (np.asarray(v, np.float32) for v in normalise)
     self.action = (data["action"] - offset) / scale
     keep = np.flatnonzero(data["success"]) if successful_only else np.arange(len(data["success"]))
@@ -91,15 +90,15 @@ class Windows:
     return len(self.window_start)
 
   def gather(self, rows: np.ndarray) -> dict:
-    """Windows `rows` -> tokens [B, H, N, D], action [B, H, C, A], mask float32 [B, H, C]."""
-    h, c = self.history, self.chunk
+    """Windows `rows` -> tokens [B, H, N, D], action [B, H, A], mask float32 [B, H].
+
+    Position p's target is the action taken at its frame; a frame repeated past an episode's last action (the
+    padding of a short episode) is masked."""
     start, frames, s = self.episode_start[rows], self.episode_frames[rows], self.window_start[rows]
-    local = s[:, None] + np.arange(h)[None]                                            # [B, H]
+    local = s[:, None] + np.arange(self.history)[None]                                 # [B, H]
     frame_idx = start[:, None] + np.minimum(local, frames[:, None] - 1)
-    target = local[:, :, None] + np.arange(c)[None, None]                               # [B, H, C]
-    mask = target < (frames - 1)[:, None, None]
-    action_idx = start[:, None, None] + np.minimum(target, frames[:, None, None] - 1)
-    return dict(tokens=np.asarray(self.features[frame_idx], np.float32), action=self.action[action_idx],
+    mask = local < (frames - 1)[:, None]
+    return dict(tokens=np.asarray(self.features[frame_idx], np.float32), action=self.action[frame_idx],
                 mask=mask.astype(np.float32))
 
   def sample(self, batch_size: int, seed: int, step: int) -> dict:
@@ -113,9 +112,9 @@ class Windows:
     if len(rows) > max_samples:
       rows = rows[np.linspace(0, len(rows) - 1, max_samples).astype(int)]
     for i in range(0, len(rows), batch_size):
-      chunk = rows[i:i + batch_size]
-      batch = self.gather(np.concatenate([chunk, np.repeat(chunk[-1:], batch_size - len(chunk))]))
-      batch["mask"][len(chunk):] = 0.0
+      part = rows[i:i + batch_size]
+      batch = self.gather(np.concatenate([part, np.repeat(part[-1:], batch_size - len(part))]))
+      batch["mask"][len(part):] = 0.0
       yield batch
 
 
@@ -141,7 +140,7 @@ def _read_out_frames(batch_size: int, history: int) -> jax.Array:
 
 
 def losses(net, params, batch, rng=None, train: bool = False):
-  """NLL [B, H, C] and squared error of the mixture mean [B, H, C, A], in normalised action units."""
+  """NLL [B, H] and squared error of the mixture mean [B, H, A], in normalised action units."""
   tokens = batch["tokens"]
   gmm = net.apply(params, tokens, _read_out_frames(tokens.shape[0], tokens.shape[1]), train=train,
                   rngs={"dropout": rng} if train else None)
@@ -186,7 +185,7 @@ def make_eval_step(net):
   @jax.jit
   def step(params, batch):
     nll, sq = losses(net, params, batch)
-    return (jnp.sum(nll * batch["mask"]), jnp.sum(sq * batch["mask"][..., None], axis=(0, 1, 2)),
+    return (jnp.sum(nll * batch["mask"]), jnp.sum(sq * batch["mask"][..., None], axis=(0, 1)),
             batch["mask"].sum())
   return step
 
@@ -291,8 +290,8 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
     stats = norm_stats(train_data["action"][valid_rows])
     fileio.atomic_write_json(stats_path, stats)
   normalise = (stats["scale"], stats["offset"])
-  train_w = Windows(train_data, pc.history, pc.chunk, normalise)
-  val_w = Windows(val_data, pc.history, pc.chunk, normalise)
+  train_w = Windows(train_data, pc.history, normalise)
+  val_w = Windows(val_data, pc.history, normalise)
   print(f"[train_policy] {train_w.num_episodes} train episodes ({len(train_w)} windows), "
         f"{val_w.num_episodes} val episodes; tokens {train_data['features'].shape[1:]}", flush=True)
 
@@ -377,7 +376,9 @@ def _seed_name(seed) -> str:
 def load_params(config, workdir: str, num_tokens: int, token_dim: int, step: Optional[int] = None,
                 train_seed=None):
   """(net, the trained trunk+head params) from <workdir>/policy/checkpoints (latest step by default): the params
-  alone, restored without building an optimizer."""
+  alone, restored without building an optimizer. A run trained with action chunks is refused in one line
+  (rundir.check_no_chunks)."""
+  rundir.check_no_chunks(config, workdir)
   pc = config.policy
   net = policy_lib.net_from_config(pc)
   like = jax.eval_shape(functools.partial(init_params, net, (1, pc.history, num_tokens, token_dim), config.seed))
@@ -415,5 +416,5 @@ def load_policy(workdir: str, history: Optional[int] = None, action: Optional[st
     stats = json.load(f)
   ev = config.policy.eval
   spec = policy_lib.ControlSpec(history=history or ev.history or config.policy.history,
-                                action=action or ev.action, noise=ev.noise, ensemble_decay=ev.ensemble_decay)
+                                action=action or ev.action, noise=ev.noise)
   return policy_lib.Policy(net, params, encoder, spec, stats["scale"], stats["offset"], seed=seed)
