@@ -4,8 +4,9 @@ frame).
 
 Command:  python launch.py --config=configs/place_ae.py:small --workdir=runs/place_ae
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime:  under an hour on one core at :small, plus the task's collection (minutes, shared by its runs); each cell's
-          stage times: results/small/README.md.
+Runtime:  under an hour on one core at :small; on place the behaviour cloning takes three times the steps (15000),
+          plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage
+          times: results/small/README.md.
 Results:  results/small/place_ae/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 Its pretrain stage is roboshape/train/pretrain.py; ae.latent_size sets the token width (0: savi.slot_size).

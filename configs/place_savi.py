@@ -3,8 +3,8 @@
 Command:  python launch.py --config=configs/place_savi.py:small --workdir=runs/place_savi
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
 Runtime:  about two and a half hours on one core at :small (SAVi's pretraining and the behaviour cloning about an hour
-          each), plus the task's collection (minutes, shared by its runs); each cell's stage times:
-          results/small/README.md.
+          each); on place the behaviour cloning takes three times the steps (15000), plus the task's collection (2000
+          demos: about 45 minutes on one core, shared by its runs); each cell's stage times: results/small/README.md.
 Results:  results/small/place_savi/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 """

@@ -4,8 +4,8 @@ frame).
 
 Command:  python launch.py --config=configs/push_ae.py:small --workdir=runs/push_ae
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/push)
-Runtime:  under an hour on one core at :small, plus the task's collection (minutes, shared by its runs); each cell's
-          stage times: results/small/README.md.
+Runtime:  under an hour on one core at :small, plus the task's collection (2000 demos: about 45 minutes on one core,
+          shared by its runs); each cell's stage times: results/small/README.md.
 Results:  results/small/push_ae/README.md
 Its pretrain stage is roboshape/train/pretrain.py; ae.latent_size sets the token width (0: savi.slot_size).
 """

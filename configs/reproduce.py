@@ -3,15 +3,16 @@
 
 Command:  python launch.py --config=configs/reproduce.py[:tiny|small|paper] --workdir=runs/reproduce_<variant>
           (`make demo` runs the :tiny variant into runs/demo)
-Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about half a day on a 2-core CPU (two lanes); :paper
-          GPU-days (benchmarks/gpu_scaleup.py estimates them). Stage times and the :small estimate:
-          results/small/README.md.
+Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about 12 hours on a 2-core CPU (two lanes; estimated
+          from the stage times in results/small/README.md with the collection of 2000 demos per task and place's
+          15000 behaviour-cloning steps added, not yet run at this recipe); :paper GPU-days
+          (benchmarks/gpu_scaleup.py estimates them).
 Results:  results/small/README.md (one folder per cell, results/small/<task>_<encoder>/README.md)
 
 Variants:
   tiny:  push x SAVi at the tiny scale (4 demos, 20 training steps, 1 seed x 2 rollouts per level): checks the
          whole pipeline end to end; its success rates mean nothing (20 training steps).
-  small: {push, pick, place} x {SAVi, AE, Objects, State, R3M, DINO} at the small scale (200 demos, 3 seeds x 20
+  small: {push, pick, place} x {SAVi, AE, Objects, State, R3M, DINO} at the small scale (2000 demos, 3 seeds x 20
          rollouts per level), resumable run by run. Each run's results are copied to
          results/small/<task>_<encoder>/ as soon as it is evaluated (grid.publish), so the table survives the
          machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending and how long
@@ -62,5 +63,9 @@ def get_config(variant: str = "paper"):
       # {task: policy.eval settings} for the runs of that task: how its policies are run at control time where it
       # differs from the defaults (common.TASK_CONTROL; the config above was built for the first task only)
       task_control=ml_collections.ConfigDict({t: common.TASK_CONTROL[t] for t in tasks if t in common.TASK_CONTROL}),
+      # {task: policy.train settings} for the runs of that task (common.TASK_SMALL_STEPS at :small)
+      task_train=ml_collections.ConfigDict(
+          {t: dict(steps=common.TASK_SMALL_STEPS[t]) for t in tasks if t in common.TASK_SMALL_STEPS}
+          if variant == "small" else {}),
   ))
   return config

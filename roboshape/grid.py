@@ -16,7 +16,8 @@ def grid_configs(config, workdir: str):
   reading the task's dataset from rundir.grid_data_dir (<data_root>/<task>, shared by the task's runs; collected
   once). Runs of encoders with a pretraining stage (SAVi) come first within a task. `grid.train_seeds`, a
   {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names; `grid.task_control`, a
-  {task: {field: value}} mapping, updates policy.eval for them (how that task's policies are run at control time).
+  {task: {field: value}} mapping, updates policy.eval for them (how that task's policies are run at control time);
+  `grid.task_train`, the same for policy.train (how long that task's policies are trained).
   """
   import ml_collections  # pylint: disable=import-outside-toplevel
   base = config.to_dict()
@@ -35,4 +36,7 @@ def grid_configs(config, workdir: str):
       control = config.grid.get("task_control", {}).get(task)
       if control:
         sub.policy.eval.update(control.to_dict())
+      train = config.grid.get("task_train", {}).get(task)
+      if train:
+        sub.policy.train.update(train.to_dict())
       yield task, encoder, sub, rundir.grid_run_dir(workdir, task, encoder)

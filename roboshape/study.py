@@ -8,7 +8,10 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
                                   scale)`, scale the variant up to any "_" (an old run's may carry a suffix, e.g.
                                   small_chunk), or for a field removed from the configs from the default it had
                                   (rundir.REMOVED), except the bookkeeping ones (IGNORED: the dataset path, worker
-                                  count, the evaluated levels, stages, seeds of the run itself)
+                                  count, the evaluated levels, stages, seeds of the run itself). A study whose
+                                  probes started from other defaults than today's (a recipe adopted since) states
+                                  those in <study>/baseline.json ({"task or *": {"dotted.field": value}}), and its
+                                  rows name what changed from them
   rollouts, successes, success    the evaluation's rollouts at the train level (every training seed pooled)
   reached                         per milestone of the task, how many of those rollouts reached it
   val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
@@ -29,7 +32,7 @@ import io
 import json
 import os
 import sys
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 from roboshape import fileio
 from roboshape import rundir
@@ -38,6 +41,7 @@ from roboshape.errors import UserError
 
 CSV_NAME = "probes.csv"
 README_NAME = "README.md"
+BASELINE_NAME = "baseline.json"
 BEGIN, END = "<!-- probes:begin (generated from probes.csv by roboshape.study) -->", "<!-- probes:end -->"
 IGNORED = ("data.dir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds", "pretrain.train_seeds",
            "seed", "name", "variant")
@@ -63,14 +67,18 @@ def _flatten(tree, prefix: str = "") -> Dict:
   return out
 
 
-def changed_fields(config: Dict) -> str:
+def changed_fields(config: Dict, baseline: Optional[Dict] = None) -> str:
   """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults (a field added
   to the configs after the run was made is not among its config's, and is not a change; one removed since is
-  compared with the default it had, rundir.REMOVED)."""
+  compared with the default it had, rundir.REMOVED), or from `baseline` where it names the field: a study's
+  baseline.json, {"*" or a task: {"dotted.field": value}}, the task's entries over "*"'s."""
   from configs import common  # pylint: disable=import-outside-toplevel
   scale = config["variant"].partition("_")[0]
+  baseline = baseline or {}
   default = {**{k: d for k, (d, _) in rundir.REMOVED.items()},
-             **_flatten(common.get_config(config["task"], config["encoder"], scale).to_dict())}
+             **_flatten(common.get_config(config["task"], config["encoder"], scale).to_dict()),
+             **{k: tuple(v) if isinstance(v, list) else v
+                for k, v in {**baseline.get("*", {}), **baseline.get(config["task"], {})}.items()}}
   ran = _flatten(config)
   keys = sorted(k for k in ran
                 if ran[k] != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))
@@ -109,8 +117,18 @@ def _fg_ari(workdir: str) -> str:
   return ""
 
 
-def probe_row(workdir: str, name: str, cores: int = 1) -> Dict:
-  """The study's row of the evaluated run in `workdir` (see the module docstring)."""
+def read_baseline(study: str) -> Dict:
+  """<study>/baseline.json (see the module docstring), or {} where the study has none."""
+  path = os.path.join(study, BASELINE_NAME)
+  if not os.path.exists(path):
+    return {}
+  with open(path) as f:
+    return json.load(f)
+
+
+def probe_row(workdir: str, name: str, cores: int = 1, baseline: Optional[Dict] = None) -> Dict:
+  """The study's row of the evaluated run in `workdir` (see the module docstring); `baseline`: the study's
+  read_baseline."""
   config = rundir.load_config(workdir).to_dict()
   rollouts = _train_rollouts(workdir)
   if not rollouts:
@@ -123,7 +141,7 @@ def probe_row(workdir: str, name: str, cores: int = 1) -> Dict:
   seconds = {s: stages.get(s, {}).get("seconds") for s in TIMED}
   total = sum(v for v in seconds.values() if v)
   row = dict(probe=name, task=config["task"], encoder=config["encoder"], variant=config["variant"],
-             changed=changed_fields(config) or "(none)", rollouts=len(rollouts), successes=wins,
+             changed=changed_fields(config, baseline) or "(none)", rollouts=len(rollouts), successes=wins,
              success=f"{wins / len(rollouts):.2f}",
              reached=" ".join(f"{m} {reached.count(m)}" for m in MILESTONES[config["task"]]),
              val_mse_best=f"{best['action_mse']:.4f}" if best else "", best_step=best["step"] if best else "",
@@ -191,7 +209,7 @@ def keep_files(workdir: str, folder: str) -> List[str]:
 def add(study: str, workdir: str, name: str, cores: int = 1) -> Dict:
   """Adds (or replaces) the probe `name` from `workdir`: its files in <study>/<name>/ (keep_files), its row in the
   CSV; then rebuilds the README's table."""
-  row = probe_row(workdir, name, cores)
+  row = probe_row(workdir, name, cores, read_baseline(study))
   keep_files(workdir, os.path.join(study, name))
   rows = [r for r in read_rows(study) if r["probe"] != name] + [row]
   write_rows(study, rows)

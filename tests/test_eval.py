@@ -627,3 +627,5 @@ def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
     assert differ <= {"data.dir", "policy.train_seeds", "pretrain.train_seeds", "stages"}, (task, enc, differ)
   evals = {task: (sub.policy.eval.action, sub.policy.eval.history) for task, _, sub, _ in stages.grid_configs(small, "/w")}
   assert evals == {"push": ("mean", 0), "pick": ("mean", 0), "place": ("sample", 1)}
+  steps = {task: sub.policy.train.steps for task, _, sub, _ in stages.grid_configs(small, "/w")}
+  assert steps == {"push": 5000, "pick": 5000, "place": 15000}

@@ -57,7 +57,10 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, expected):
 
 def test_variants_scale_the_experiment():
   sizes = {v: common.get_config("push", "savi", v).data.train_episodes for v in common.VARIANTS}
-  assert sizes["paper"] == 2000 and sizes["tiny"] < sizes["small"] < sizes["paper"]
+  assert sizes["paper"] == sizes["small"] == 2000 and sizes["tiny"] < sizes["small"]   # the recipe's demos
+  steps = {t: common.get_config(t, "objects", "small").policy.train.steps for t in common.TASKS}
+  assert steps == {"push": 5000, "pick": 5000, "place": 15000}        # TASK_SMALL_STEPS, at :small only
+  assert common.get_config("place", "objects", "paper").policy.train.steps == 100_000
   assert "pretrain" not in common.get_config("push", "dino", "tiny").stages
   assert "pretrain" in common.get_config("push", "savi", "tiny").stages
 
@@ -141,7 +144,8 @@ def test_host_devices_one_per_core_of_the_process(monkeypatch):
 def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields():
   """The committed :small runs' config.json hold SAVi's training settings in savi.train/savi.eval and the AE's frame
   model nowhere: read back (rundir.load_config), they are today's fields with their values, and the study finds no
-  change against today's :small defaults (a field they predate, such as policy.proprio, is none)."""
+  change against today's :small defaults but the recipe adopted since (200 demos then, 2000 now; a field they
+  predate, such as policy.proprio, is none)."""
   from roboshape import rundir  # pylint: disable=import-outside-toplevel
   from roboshape import study  # pylint: disable=import-outside-toplevel
   folder = os.path.join(ROOT, "results", "small", "push_ae")
@@ -153,6 +157,6 @@ def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields()
   assert (config.pretrain.train.clip_norm, config.pretrain.train.clip_norm_of) == (0.05, "mean")
   assert config.pretrain.eval.frames == old["savi"]["eval"]["frames"] and "train" not in config.savi
   assert config.ae.encoder.to_dict() == old["savi"]["encoder"] and config.ae.pool == old["savi"]["pool"]
-  assert "proprio" not in old["policy"] and study.changed_fields(config.to_dict()) == ""
+  assert "proprio" not in old["policy"] and study.changed_fields(config.to_dict()) == "data.train_episodes=200"
   today = common.get_config("push", "ae", "small").to_dict()
   assert rundir.upgrade_config(today) == today                        # today's configs come back as they are

@@ -60,10 +60,24 @@ def test_a_removed_field_counts_as_changed_where_it_differs_from_the_default_it_
   # An old probe of the removed "_chunk" variant: its variant names the scale before the "_".
   removed = {"variant": "small_chunk", "policy.chunk": 8, "policy.eval.ensemble_decay": 0.01}
   _fake_run(str(tmp_path / "chunk"), stored=removed, **{"data.train_episodes": 2000})
-  row = study.probe_row(str(tmp_path / "chunk"), "chunk")
+  row = study.probe_row(str(tmp_path / "chunk"), "chunk", baseline={"*": {"data.train_episodes": 200}})
   assert (row["variant"], row["changed"]) == ("small_chunk", "data.train_episodes=2000; policy.chunk=8")
   _fake_run(str(tmp_path / "plain"), stored=dict(removed, variant="small", **{"policy.chunk": 1}))
   assert study.probe_row(str(tmp_path / "plain"), "plain")["changed"] == "(none)"
+
+
+def test_a_studys_baseline_replaces_todays_defaults_where_it_names_a_field_the_tasks_entries_over_stars(tmp_path):
+  _fake_run(str(tmp_path / "run"), **{"data.train_episodes": 200, "policy.train.steps": 15000})
+  config = json.load(open(tmp_path / "run" / "config.json"))
+  assert study.changed_fields(config) == "data.train_episodes=200; policy.train.steps=15000"   # push: 2000, 5000
+  assert study.changed_fields(config, {"*": {"data.train_episodes": 200}}) == "policy.train.steps=15000"
+  both = {"*": {"data.train_episodes": 200, "policy.train.steps": 5000}, "push": {"policy.train.steps": 15000}}
+  assert study.changed_fields(config, both) == ""
+  assert study.changed_fields(config, dict(both, push={})) == "policy.train.steps=15000"
+  (tmp_path / "study").mkdir()
+  assert study.read_baseline(str(tmp_path / "study")) == {}
+  (tmp_path / "study" / study.BASELINE_NAME).write_text(json.dumps(both))
+  assert study.read_baseline(str(tmp_path / "study")) == both
 
 
 def test_adding_probes_rewrites_the_csv_and_the_readme_block_only(tmp_path):
@@ -101,7 +115,8 @@ def test_the_committed_recipe_study_readme_equals_its_csv_and_the_csv_its_probes
   rows = study.read_rows(RECIPE)
   assert rows, "results/small/recipe/probes.csv holds no probe"
   for row in rows:
-    again = study.probe_row(os.path.join(RECIPE, row["probe"]), row["probe"], int(row["cores"]))
+    again = study.probe_row(os.path.join(RECIPE, row["probe"]), row["probe"], int(row["cores"]),
+                            study.read_baseline(RECIPE))
     assert {k: str(v) for k, v in again.items()} == row
   with open(os.path.join(RECIPE, "README.md")) as f:
     text = f.read()
