@@ -1,7 +1,8 @@
 """Figures: the paper's overall figure (mean success rate per encoder and generalization level, averaged over
-tasks). Training curves of validation metrics are drawn by roboshape/train/history.py."""
+tasks) and its per-task figure with the report's 95% intervals as error bars. Training curves of validation metrics
+are drawn by roboshape/train/history.py."""
 import os
-from typing import Dict, List, Sequence
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
@@ -48,10 +49,55 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   ax.set_title(title, fontsize=9)
   ax.legend(fontsize=7, frameon=False)
   ax.spines[["top", "right"]].set_visible(False)
-  fig.tight_layout()
+  return _save(fig, plt, path)
+
+
+def _save(fig, plt, path: str, rect=(0, 0, 1, 1)) -> str:
+  """Lays the figure out within `rect` (of the figure: left, bottom, right, top), writes it atomically to `path`
+  (its format from the extension) and closes it; returns `path`."""
+  fig.tight_layout(rect=rect)
   os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
   try:
     fileio.atomic_write_file(path, lambda f: fig.savefig(f, format=os.path.splitext(path)[1][1:]))
   finally:
     plt.close(fig)
   return path
+
+
+def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float, float]], tasks: Sequence[str],
+                          encoders: Sequence[str], levels: Sequence[str], path: str) -> str:
+  """Writes the per-task figure to `path`: one panel per task, x the levels, one bar per encoder at its success
+  with an error bar over its interval. values: {(task, encoder, level): (value, low, high)}, NaN bounds drawing no
+  error bar; a missing key draws no bar. Returns `path`."""
+  import matplotlib  # pylint: disable=import-outside-toplevel
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+
+  encoders = tables.sort_encoders(list(encoders))
+  x = np.arange(len(levels))
+  width = 0.8 / max(len(encoders), 1)
+  fig, axes = plt.subplots(1, len(tasks), figsize=(3.2 * len(tasks) + 0.8, 3.0), dpi=150, squeeze=False,
+                           sharey=True)
+  for ax, task in zip(axes[0], tasks):
+    for i, encoder in enumerate(encoders):
+      cells = [values.get((task, encoder, l)) for l in levels]
+      if all(c is None for c in cells):
+        continue
+      value, low, high = (np.array([np.nan if c is None else c[k] for c in cells]) for k in range(3))
+      errors = np.nan_to_num(np.stack([value - low, high - value]))
+      ax.bar(x + (i - (len(encoders) - 1) / 2) * width, np.nan_to_num(value), width, yerr=errors, capsize=2,
+             error_kw=dict(elinewidth=0.8), label=tables.encoder_name(encoder), color=f"C{i}")
+    ax.set_xticks(x, [tables.level_name(l) for l in levels])
+    ax.set_ylim(0, 1.05)
+    ax.set_title(task, fontsize=9)
+    ax.set_xlabel("generalization level")
+    ax.spines[["top", "right"]].set_visible(False)
+  axes[0][0].set_ylabel("success rate (95% interval)")
+  handles, labels = axes[0][0].get_legend_handles_labels()
+  for ax in axes[0][1:]:
+    for h, l in zip(*ax.get_legend_handles_labels()):
+      if l not in labels:
+        handles.append(h)
+        labels.append(l)
+  fig.legend(handles, labels, fontsize=7, frameon=False, loc="center right")
+  return _save(fig, plt, path, rect=(0, 0, 1 - 0.8 / (3.2 * len(tasks) + 0.8), 1))

@@ -10,9 +10,13 @@ weights are absent: <run>/SKIPPED.json written by the grid) or that has no resul
 rewrites the generated summary block of each published run's README.md from its results.csv and config.json
 (roboshape/eval/readme.py).
 
-Outputs in <workdir>/report/: report.md (everything, with the commands' provenance), table_<task>.md and
-table_<task>.tex per task, overall.png (mean success per encoder and level across tasks, the paper's overall
-figure), summary.json and results.csv (every rollout of every run).
+Outputs in <workdir>/report/: report.md, table_<task>.md and table_<task>.tex per task (mean ± std, the paper's
+layout), success_by_level.png (success per level and encoder, a panel per task, with 95% intervals as error bars),
+overall.png (mean success per encoder and level across tasks, the paper's overall figure), summary.json (the
+summary rows and every interval) and results.csv (every rollout of every run). report.md holds, in order: the
+verdict on the paper's two claims (roboshape/eval/claims.py), then per task the table, each cell's success with its
+95% interval (roboshape/eval/stats.py), SAVi's success minus each other encoder's, and each encoder's robustness to
+the shift levels; then the figures.
 """
 import csv
 import json
@@ -25,6 +29,7 @@ from roboshape import rundir
 from roboshape.envs import TASKS
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
+from roboshape.eval import claims
 from roboshape.eval import plots
 from roboshape.eval import readme
 from roboshape.eval import results as results_lib
@@ -152,6 +157,9 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
       md.append(f"Cells of runs with several training seeds ({', '.join(by_training)}): mean ± std over the "
                 "training seeds of each policy's success rate on all its evaluation rollouts.")
     md.append("")
+  answer = claims.answer(loaded, tasks, encoders, levels)
+  if answer.cells:
+    md += [claims.METHOD, "", "## Verdict", "", claims.verdict(answer, tasks, encoders)]
   for task in tasks:
     cells = tables.cells_from_summary(summary, task)
     md_table = tables.render_markdown(cells, encoders, levels)
@@ -173,6 +181,19 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
           md.append(f"- {tables.encoder_name(encoder)} on {task}: {crashed} rollout(s) lost to simulator worker "
                     "crashes, left out of the rates.")
     md.append("")
+    if any(t == task for t, _ in answer.cells):
+      md += [f"### {task}: success with its 95% interval", "", claims.success_table(answer, task, encoders)]
+    for title, table in ((f"### {task}: SAVi's success minus the others'", claims.pairs_table(answer, task, encoders)),
+                         (f"### {task}: robustness (success at a shift level / at the train level)",
+                          claims.robustness_table(answer, task, encoders))):
+      if table:
+        md += [title, "", table]
+  if answer.success:
+    paths["success_by_level.png"] = plots.levels_with_intervals(
+        {k: (e.value, e.low, e.high) for k, e in answer.success.items()}, [t for t in tasks if any(
+            k[0] == t for k in answer.success)], encoders, answer.levels, os.path.join(out_dir, "success_by_level.png"))
+    md += ["## Success per level", "", "![success per level with 95% intervals](success_by_level.png)", "",
+           f"Error bars: the 95% intervals of the tables above ({claims.ONE_SEED_MARK} there: one training seed).", ""]
   if summary:
     paths["overall.png"] = plots.overall_bar_chart(summary, os.path.join(out_dir, "overall.png"), levels=levels)
     md += ["## Overall", "", "![overall success rate](overall.png)", ""]
@@ -189,7 +210,9 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
   fileio.atomic_write_json(paths["summary.json"], dict(
       runs=[dict(task=t, encoder=e, workdir=d, **({"skipped": loaded[(t, e)]["skipped"]}
                                                    if "skipped" in loaded[(t, e)] else {})) for t, e, d in runs],
-      summary=summary), indent=1)
+      summary=summary,
+      intervals=[dict(task=t, encoder=e, level=l, success=x.value, low=x.low, high=x.high, training_seeds=x.seeds[0])
+                 for (t, e, l), x in answer.success.items()]), indent=1)
   paths["results.csv"] = os.path.join(out_dir, rundir.RESULTS_CSV)
   results_lib.write_csv(paths["results.csv"], rollouts)
   paths["report.md"] = os.path.join(out_dir, "report.md")

@@ -1,0 +1,279 @@
+"""The paper's two claims, answered from a report's cells with 95% intervals (roboshape/eval/stats.py).
+
+  Claim 1: an object-centric encoder (SAVi) succeeds more often than global ones (AE, R3M, DINO).
+  Claim 2: it loses less under distribution shift than they do.
+
+`answer` estimates, per task: each encoder's success at each level; SAVi's success minus each other encoder's at
+each level and averaged over the levels (paired: the two cells played the same start states); each encoder's
+robustness, its success at a shift level (and averaged over the shift levels) divided by its success at the train
+level; and SAVi's robustness minus each global encoder's. The tables render them; `verdict` reads the claims off
+them, per task and global encoder, by which side of 0 the interval lies:
+
+  claim 1: SAVi's success averaged over the levels minus the other's; claim 2: SAVi's robustness over the shift
+  levels (averaged) minus the other's.
+  above 0: supports; below 0: contradicts; holding 0 or undefined: cannot decide, with how many more rollouts or
+  training seeds would decide it if the difference held (stats.needed), or why no number would.
+
+A task supports a claim when every global encoder present there gives "supports", contradicts it when any gives
+"contradicts", and cannot decide otherwise. Every word of the verdict is computed from the cells.
+"""
+import dataclasses
+import math
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+
+from roboshape.eval import stats
+from roboshape.eval import tables
+
+OBJECT_CENTRIC = "savi"
+GLOBAL = ("ae", "r3m", "dino")
+CONTROLS = ("objects",)            # compared with SAVi in the tables, not part of the claims
+LEVELS_MEAN = "mean"               # the column of a statistic averaged over the levels (or the shift levels)
+OUTCOMES = {1: "supports", -1: "contradicts", 0: "cannot decide"}
+ONE_SEED_MARK = "†"
+
+
+@dataclasses.dataclass
+class Answer:
+  """Every estimate of a report, keyed by task.
+
+  Attributes:
+    success: {(task, encoder, level): Estimate}.
+    pairs: {(task, other, level or LEVELS_MEAN): Estimate of SAVi's success minus `other`'s}.
+    robustness: {(task, encoder, shift level or LEVELS_MEAN): Estimate}.
+    gaps: {(task, other): Estimate of SAVi's robustness (LEVELS_MEAN) minus `other`'s}.
+    cells: {(task, encoder): stats.Cell}.
+    levels: the report's levels that some cell has.
+    task_shifts: {task: the shift levels every cell of the task has}, which robustness averages over.
+  """
+  success: Dict[Tuple[str, str, str], stats.Estimate]
+  pairs: Dict[Tuple[str, str, str], stats.Estimate]
+  robustness: Dict[Tuple[str, str, str], stats.Estimate]
+  gaps: Dict[Tuple[str, str], stats.Estimate]
+  cells: Dict[Tuple[str, str], stats.Cell]
+  levels: Tuple[str, ...]
+  task_shifts: Dict[str, Tuple[str, ...]]
+
+  @property
+  def shifts(self) -> Tuple[str, ...]:
+    return tuple(l for l in self.levels if l != stats.TRAIN) if stats.TRAIN in self.levels else ()
+
+
+def compared(encoders: Sequence[str]) -> List[str]:
+  """The encoders SAVi is compared with in the tables: the global ones, then the controls, as present."""
+  return [e for e in GLOBAL + CONTROLS if e in encoders]
+
+
+def answer(loaded: Dict[Tuple[str, str], Dict], tasks: Sequence[str], encoders: Sequence[str],
+           levels: Sequence[str], draws: int = stats.DRAWS, seed: int = stats.SEED) -> Answer:
+  """Every estimate over `loaded` ({(task, encoder): a run with its `rollouts`, or skipped})."""
+  cells = {(t, e): stats.cell(loaded[(t, e)]["rollouts"]) for t in tasks for e in encoders
+           if "rollouts" in loaded.get((t, e), {}) and loaded[(t, e)]["rollouts"]}
+  levels = [l for l in levels if any(l in c.levels for c in cells.values())]
+  out = Answer({}, {}, {}, {}, cells, tuple(levels), {})
+  for task in tasks:
+    out.task_shifts[task] = tuple(l for l in out.shifts if all(l in c.levels for (t, _), c in cells.items()
+                                                                if t == task))
+  for (task, encoder), c in cells.items():
+    for level in levels:
+      if level in c.levels:
+        out.success[(task, encoder, level)] = stats.success(c, level, draws, seed)
+    if stats.TRAIN in c.levels:
+      for shift in out.shifts:
+        if shift in c.levels:
+          out.robustness[(task, encoder, shift)] = stats.robustness(c, [shift], draws, seed)
+      if out.task_shifts[task]:
+        out.robustness[(task, encoder, LEVELS_MEAN)] = stats.robustness(c, out.task_shifts[task], draws, seed)
+  for task in tasks:
+    savi = cells.get((task, OBJECT_CENTRIC))
+    for other in compared(encoders):
+      c = cells.get((task, other))
+      if savi is None or c is None:
+        continue
+      common = [l for l in levels if l in savi.levels and l in c.levels]
+      for level in common:
+        out.pairs[(task, other, level)] = stats.difference(savi, c, [level], draws, seed)
+      if common:
+        out.pairs[(task, other, LEVELS_MEAN)] = stats.difference(savi, c, common, draws, seed)
+      if other in GLOBAL and out.task_shifts[task] and all(stats.TRAIN in x.levels for x in (savi, c)):
+        out.gaps[(task, other)] = stats.robustness_difference(savi, c, out.task_shifts[task], draws, seed)
+  return out
+
+
+def _number(x: float, signed: bool) -> str:
+  """Two decimals; three where two would print a number that is not 0 as 0 (an interval's bound just above 0)."""
+  x = 0.0 if abs(x) <= stats.EPS else x
+  digits = 3 if x != 0 and round(x, 2) == 0 else 2
+  return f"{x:+.{digits}f}" if signed else f"{x:.{digits}f}"
+
+
+def interval(e: stats.Estimate, signed: bool = False) -> str:
+  """"0.13 [0.06, 0.22]" ("+0.10 [+0.04, +0.16]" signed), "1.33 [no interval]" where the interval is undefined,
+  "undefined" where the value is; then the one-seed mark where a cell has one training seed."""
+  if math.isnan(e.value):
+    return "undefined"
+  text = _number(e.value, signed) + (f" [{_number(e.low, signed)}, {_number(e.high, signed)}]" if e.defined
+                                     else " [no interval]")
+  return text + (ONE_SEED_MARK if e.one_seed else "")
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+  lines = ["| " + " | ".join(header) + " |", "| --- |" + " --- |" * (len(header) - 1)]
+  lines += ["| " + " | ".join(row) + " |" for row in rows]
+  return "\n".join(lines) + "\n"
+
+
+def success_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
+  """Success per level (rows) and encoder (columns), pooled over the cell's rollouts, with its interval."""
+  return _table([""] + [tables.encoder_name(e) for e in encoders],
+                [[tables.level_name(l)] + [interval(a.success[(task, e, l)]) if (task, e, l) in a.success else "-"
+                                           for e in encoders] for l in a.levels])
+
+
+def pairs_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
+  """SAVi's success minus each compared encoder's, per level and averaged over the levels ("" when none)."""
+  columns = list(a.levels) + [LEVELS_MEAN]
+  rows = [[f"SAVi − {tables.encoder_name(o)}"] + [interval(a.pairs[(task, o, l)], signed=True)
+                                                  if (task, o, l) in a.pairs else "-" for l in columns]
+          for o in compared(encoders) if (task, o, LEVELS_MEAN) in a.pairs]
+  if not rows:
+    return ""
+  return _table([""] + [tables.level_name(l) for l in a.levels] + ["mean over levels"], rows)
+
+
+def robustness_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
+  """Each encoder's robustness per shift level and over the shift levels, then SAVi's minus the global ones'."""
+  columns = list(a.shifts) + [LEVELS_MEAN]
+  rows = [[tables.encoder_name(e)] + [interval(a.robustness[(task, e, l)]) if (task, e, l) in a.robustness else "-"
+                                      for l in columns]
+          for e in encoders if (task, e, LEVELS_MEAN) in a.robustness]
+  rows += [[f"SAVi − {tables.encoder_name(o)}"] + ["" for _ in a.shifts] + [interval(a.gaps[(task, o)], True)]
+           for o in GLOBAL if (task, o) in a.gaps]
+  if not rows:
+    return ""
+  return _table([""] + list(a.shifts) + ["mean over " + ", ".join(a.task_shifts[task])], rows)
+
+
+def _needed(e: stats.Estimate) -> str:
+  """What would decide an undecided difference: "; if the difference held, about ... would decide it", or why
+  nothing would ("" for a decided or undefined one)."""
+  if e.side != 0 or not e.defined:
+    return ""
+  if abs(e.value) <= stats.EPS:
+    return "; the observed difference is 0, so no number of rollouts would decide it"
+  n = stats.needed(e)
+  if n is None:
+    return ""
+  ways = []
+  if n.starts is not None:
+    ways.append(f"about {n.starts} rollouts per level per training seed (now {e.starts}"
+                + ("; at least, as the variation between training seeds is not counted" if n.lower_bound else "")
+                + ")")
+  if n.seeds is not None:
+    ways.append(f"about {n.seeds} training seeds per cell (now {max(e.seeds)})")
+  if not n.lower_bound:
+    ways.append(f"{n.factor:.1f} times both the rollouts and the training seeds")
+  if not ways:
+    return ""
+  return "; if the difference held, it would be decided with " + (
+      ways[0] if len(ways) == 1 else ", ".join(ways[:-1]) + " or " + ways[-1])
+
+
+def _never_succeeds(c: stats.Cell) -> bool:
+  return not np.nansum(c.success) > 0
+
+
+def _names(items: Sequence[str]) -> str:
+  items = list(items)
+  return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def _claim1(a: Answer, task: str, other: str) -> Tuple[int, str]:
+  e, name = a.pairs[(task, other, LEVELS_MEAN)], tables.encoder_name(other)
+  text = f"{task}, SAVi − {name}: {interval(e, signed=True)}: {OUTCOMES[e.side]}"
+  if e.side == 0:
+    if _never_succeeds(a.cells[(task, OBJECT_CENTRIC)]) and _never_succeeds(a.cells[(task, other)]):
+      text += "; neither succeeds in any rollout, so no number of rollouts separates them"
+    else:
+      text += _needed(e)
+  return e.side, text
+
+
+def _claim2(a: Answer, task: str, other: str) -> Tuple[int, str]:
+  e, name = a.gaps[(task, other)], tables.encoder_name(other)
+  text = f"{task}, SAVi − {name}: {interval(e, signed=True)}: {OUTCOMES[e.side]}"
+  if e.defined:
+    return e.side, text + _needed(e)
+  why = []
+  for encoder in (OBJECT_CENTRIC, other):
+    r = a.robustness[(task, encoder, LEVELS_MEAN)]
+    if math.isnan(r.value):
+      why.append(f"{tables.encoder_name(encoder)} never succeeds at the train level, so its robustness is undefined")
+    elif not r.defined:
+      why.append(f"{tables.encoder_name(encoder)}'s train-level success is 0 in {100 * r.undefined:.0f}% of the "
+                 "resamples, so its robustness has no interval")
+  if not why:
+    why.append(f"one train-level success or the other is 0 in {100 * e.undefined:.0f}% of the resamples, so the "
+               "difference has no interval")
+  return 0, text + "; " + "; ".join(why) + ("; robustness can be compared only once the train level holds more "
+                                             "successes than here (better policies, or many more rollouts)")
+
+
+def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int, title: str, judged: str,
+           judge, keyed) -> str:
+  """One claim's paragraph: its statement, how it is judged, a sentence per comparison, and what the table says per
+  task."""
+  present = [o for o in GLOBAL if o in encoders and any((t, o) in a.cells for t in tasks)]
+  lines, by_task = [], {}
+  for task in tasks:
+    sides = []
+    for other in present:
+      if keyed(task, other):
+        side, text = judge(a, task, other)
+        sides.append(side)
+        lines.append(text + ".")
+    if sides:
+      by_task[task] = -1 if -1 in sides else 1 if all(s == 1 for s in sides) else 0
+  absent = [tables.encoder_name(o) for o in GLOBAL if o not in present]
+  one_seed = [t for t in tasks if t in by_task and any(
+      len(a.cells[(t, e)].train_seeds) == 1 for e in (OBJECT_CENTRIC, *present) if (t, e) in a.cells)]
+  text = [f"**Claim {number}: {title}**", judged] + lines
+  if absent:
+    text.append(f"{_names(absent)}: no cell in this table (skipped or not run), so the claim is judged against "
+                f"{_names([tables.encoder_name(o) for o in present]) if present else 'nothing'} only.")
+  if one_seed:
+    text.append(f"On {_names(one_seed)} a cell has one training seed ({ONE_SEED_MARK}): its interval leaves out the "
+                "variation between training seeds.")
+  if not by_task:
+    text.append(f"This table cannot decide claim {number}: it holds no SAVi cell beside a global encoder's"
+                + (" with a train level" if number == 2 else "") + ".")
+  else:
+    groups = [(word, [t for t in tasks if by_task.get(t) == side]) for side, word in
+              ((1, "supports"), (-1, "contradicts"), (0, "cannot decide"))]
+    parts = [f"{word} {'claim ' + str(number) if i == 0 else 'it'} on {_names(ts)}"
+             for i, (word, ts) in enumerate([g for g in groups if g[1]])]
+    text.append(f"So this table {_names(parts)}.")
+  return " ".join(text)
+
+
+def verdict(a: Answer, tasks: Sequence[str], encoders: Sequence[str]) -> str:
+  """The generated verdict: a paragraph per claim (Markdown)."""
+  claim1 = _claim(a, tasks, encoders, 1, "an object-centric encoder (SAVi) succeeds more often than global ones.",
+                  "Judged per task on SAVi's success averaged over the levels minus the other's, by where its 95% "
+                  "interval lies:", _claim1, lambda t, o: (t, o, LEVELS_MEAN) in a.pairs)
+  claim2 = _claim(a, tasks, encoders, 2, "it loses less under distribution shift.", "Judged per task on SAVi's "
+                  "robustness (its success averaged over the shift levels divided by its success at the train "
+                  "level) minus the other's, by where its 95% interval lies:", _claim2,
+                  lambda t, o: (t, o) in a.gaps)
+  return claim1 + "\n\n" + claim2 + "\n"
+
+
+METHOD = ("Intervals: 95% percentile intervals of a hierarchical bootstrap (roboshape/eval/stats.py, "
+          f"{stats.DRAWS} resamples, seed {stats.SEED}): a cell's training seeds are drawn first, then its start "
+          "states (env seeds), one draw for every training seed, every level and both cells of a comparison, "
+          "since they all played the same start states. Success is pooled over the cell's rollouts. "
+          f"{ONE_SEED_MARK}: a cell with one training seed, whose interval leaves out the variation between "
+          "training seeds. Robustness: success at a shift level divided by success at the train level; "
+          "\"undefined\" where the train level has no success, \"no interval\" where more than 2.5% of the "
+          "resamples have none.")
