@@ -29,7 +29,8 @@ Variants:
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 
 Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<column>/ (one run:
-savi/, features/, policy/, eval/), <workdir>/report/report.md (tables per task + overall figure).
+savi/, features/, policy/, eval/, dataset.json: its dataset's identity), <workdir>/report/report.md (tables per task
++ overall figure).
 Any field can be overridden, e.g. --config.grid.tasks="('pick',)" --config.eval.rollouts_per_seed=50.
 """
 import ml_collections

@@ -2,6 +2,8 @@
 
   <workdir>/config.json      the config that ran (`save_config`, `load_config`)
   <workdir>/data/            the datasets (`data_root`: config.data.dir when set), one per task
+  <workdir>/dataset.json     the identity of the dataset the run was trained on, wherever it lies (`dataset_record`;
+                             written by the collect stage, roboshape/data)
   <workdir>/<encoder>/       a pretrained encoder's: checkpoints/, tb/, val_metrics.json/.png (`pretrain_dir`);
                              savi/ (with figures/) for SAVi (`savi_dir`), ae/ for the AE (`ae_dir`)
   <workdir>/features/<key>/  encoder features cached per (dataset, encoder checkpoint)       (`features_dir`)
@@ -45,6 +47,7 @@ RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and 
 RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run's): one row per rollout
 RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run working in the workdir (`hold_workdir`)
 SELECTION_FILE = "selected.json"   # <encoder>/selected.json: the seed of pretrain.train_seeds pretraining selected
+DATASET_FILE = "dataset.json"      # <workdir>/dataset.json (and a published run's): its dataset's identity
 
 # Fields that moved, old dotted name -> new: the pretraining settings SAVi and the AE share left the savi section.
 RENAMED = {
@@ -157,6 +160,11 @@ def _put(tree: dict, dotted: str, value) -> None:
 def data_root(config, workdir: str) -> str:
   """The folder that holds the datasets of a run: config.data.dir, or <workdir>/data when it is empty."""
   return config.data.dir or os.path.join(workdir, "data")
+
+
+def dataset_record(workdir: str) -> str:
+  """<workdir>/dataset.json: the identity of the dataset the run was trained on (roboshape.data.record)."""
+  return os.path.join(workdir, DATASET_FILE)
 
 
 def pretrained_workdir(config, workdir: str) -> str:

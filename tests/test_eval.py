@@ -2,6 +2,7 @@
 import csv
 import json
 import os
+import shutil
 
 import ml_collections
 import numpy as np
@@ -673,3 +674,32 @@ def test_a_column_with_options_labels_its_rollouts_its_tables_and_its_published_
   with open(report.build_published_report(root)["table_push.md"]) as f:
     assert f.read().splitlines()[:3] == ["| | SAVi+proprio |", "| --- | --- |", "| none | **0.50** ± 0.00 |"]
 
+
+def _published_cell(root, name: str, identity=None) -> None:
+  """A published cell <root>/<name>/ of one rollout, recording dataset `identity` (none: no dataset.json)."""
+  task, encoder = name.split("_", 1)
+  os.makedirs(os.path.join(root, name))
+  with open(os.path.join(root, name, rundir.RESULTS_CSV), "w") as f:
+    f.write(f"task,encoder,level,seed_index,rollout,seed,success,length,ended\n"
+            f"{task},{encoder},train,0,0,7,True,9,success\n")
+  if identity:
+    with open(os.path.join(root, name, rundir.DATASET_FILE), "w") as f:
+      json.dump({"identity": identity, "name": f"roboshape_{task}"}, f)
+
+
+def test_the_published_report_refuses_cells_of_one_task_trained_on_different_datasets(tmp_path, capsys):
+  root = str(tmp_path / "results")
+  for name, identity in (("push_savi", "aaaa"), ("push_ae", "aaaa"), ("push_state", "bbbb"), ("pick_state", "cccc"),
+                         ("pick_savi", None)):
+    _published_cell(root, name, identity)
+  assert report.main(["report", root]) == 2
+  line = capsys.readouterr().err.strip()
+  assert line == ("roboshape: error: the push cells were trained on different datasets (push_ae, push_savi on "
+                  "dataset aaaa; push_state on dataset bbbb): publish every cell of a task from runs on one dataset "
+                  f"(one grid), or move the odd cells out of {root}.")
+  assert sorted(os.listdir(root)) == ["pick_savi", "pick_state", "push_ae", "push_savi", "push_state"]
+  assert not any(os.path.exists(os.path.join(root, n, "README.md")) for n in os.listdir(root))   # nothing written
+  # one dataset per task (a cell without a record is not compared): the report is built
+  shutil.move(os.path.join(root, "push_state"), str(tmp_path / "push_state"))
+  assert report.main(["report", root]) == 0
+  assert os.path.isfile(os.path.join(root, "report", "report.md"))
