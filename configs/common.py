@@ -17,6 +17,8 @@ import ml_collections
 from roboshape import encoders
 from roboshape import envs
 from roboshape import rundir
+from roboshape.encoders import columns
+from roboshape.errors import UserError
 
 TASKS = envs.TASKS
 VARIANTS = ("paper", "small", "tiny")
@@ -114,6 +116,11 @@ def pretrain_config(variant: str) -> ml_collections.ConfigDict:
       # <encoder>/seed_<s>/, the one with the best final validation served (<encoder>/selected.json; the metric is
       # the encoder's, e.g. SAVi's FG-ARI). Needs pretrain.eval.episodes >= 1 with two seeds or more.
       train_seeds=(),
+      # "": the run's pretrain stage trains its encoder in its workdir. A path: the workdir of another run of the
+      # same task and encoder whose pretrain stage trained it, served from there (its config.json must agree on
+      # everything pretraining reads); the run then has no pretrain stage. A grid sets it for a column with
+      # policy options, to the plain column's run (roboshape/grid.py).
+      from_workdir="",
   ))
 
 
@@ -285,17 +292,21 @@ def eval_config(variant: str) -> ml_collections.ConfigDict:
 
 
 def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collections.ConfigDict:
-  """The full config of one experiment: `task` x `encoder` at the scale `variant`."""
+  """The full config of one experiment: `task` x `encoder` at the scale `variant`. `encoder` may name a column, an
+  encoder with options beyond the paper ("savi+proprio": roboshape/encoders/columns.py), whose fields it sets."""
   variant = variant or "paper"
+  column = encoder
   if task not in TASKS:
     raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}.")
-  if encoder not in encoders.names():
-    raise ValueError(f"unknown encoder {encoder!r}; choose one of {', '.join(encoders.names())}.")
+  try:
+    encoder = columns.parse(column)[0]
+  except UserError as e:
+    raise ValueError(str(e)) from None
   if variant not in VARIANTS:
     raise ValueError(f"unknown variant {variant!r}; use configs/<exp>.py:<variant> with one of {', '.join(VARIANTS)}.")
   stages = STAGES if encoders.get(encoder).pretrain else tuple(s for s in STAGES if s != "pretrain")
   config = ml_collections.ConfigDict(dict(
-      name=f"{task}_{encoder}",
+      name=f"{task}_{column}",
       task=task,
       encoder=encoder,
       variant=variant,
@@ -312,6 +323,7 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
       policy=policy_config(variant),
       eval=eval_config(variant),
   ))
+  columns.apply(config, column)
   config.policy.eval.update(TASK_CONTROL.get(task, {}))
   if variant == "small" and task in TASK_SMALL_STEPS:
     config.policy.train.steps = TASK_SMALL_STEPS[task]

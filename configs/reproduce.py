@@ -1,29 +1,36 @@
 """The paper's experiments in one command: collect -> pretrain -> cache -> train_policy -> evaluate for every
-(task, encoder) of a grid, then one report over all of them.
+(task, column) of a grid, then one report over all of them.
 
 Command:  python launch.py --config=configs/reproduce.py[:tiny|small|paper] --workdir=runs/reproduce_<variant>
           (`make demo` runs the :tiny variant into runs/demo)
-Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about 12 hours on a 2-core CPU (two lanes; estimated
-          from the stage times in results/small/README.md with the collection of 2000 demos per task and place's
-          15000 behaviour-cloning steps added, not yet run at this recipe); :paper GPU-days
+Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about 90 core-hours, about 45 hours on a 2-core CPU's
+          two lanes (estimated, not run: results/small/README.md's stage times per cell, scaled to three training
+          seeds a cell, three SAVi and AE pretraining seeds, place's 15000 behaviour-cloning steps and 2000 demos a
+          task; per row push ~22, pick ~21, place ~46 core-hours, the table in README.md); :paper GPU-days
           (benchmarks/gpu_scaleup.py estimates them).
-Results:  results/small/README.md (one folder per cell, results/small/<task>_<encoder>/README.md)
+Results:  results/small/README.md (one folder per cell, results/small/<task>_<column>/README.md)
 
 Variants:
   tiny:  push x SAVi at the tiny scale (4 demos, 20 training steps, 1 seed x 2 rollouts per level): checks the
          whole pipeline end to end; its success rates mean nothing (20 training steps).
-  small: {push, pick, place} x {SAVi, AE, Objects, State, R3M, DINO} at the small scale (2000 demos, 3 seeds x 20
-         rollouts per level), resumable run by run. Each run's results are copied to
-         results/small/<task>_<encoder>/ as soon as it is evaluated (grid.publish), so the table survives the
-         machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending and how long
-         each stage took. Two runs at once (grid.lanes=2), each pinned to one core, each logging to
+  small: {push, pick, place} x {SAVi, AE, Objects, State, R3M, DINO, SAVi+proprio, AE+proprio} at the small scale
+         (2000 demos, 3 evaluation seeds x 20 rollouts per level), three training seeds per cell on every task and
+         three pretraining seeds for SAVi and the AE, each selected by its own validation metric. The +proprio
+         columns are SAVi and the AE with policy.proprio=True (the robot's pose as one more token per frame, the
+         option beyond the paper that the recipe study keeps: results/small/recipe/README.md; the columns:
+         roboshape/encoders/columns.py); each serves the SAVi or AE its task's plain column pretrained
+         (pretrain.from_workdir) and starts once that run has ended. Resumable run by run. Each run's results are
+         copied to results/small/<task>_<column>/ as soon as it is evaluated (grid.publish), so the table survives
+         the machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending and how
+         long each stage took. Two runs at once (grid.lanes=2), each pinned to one core, each logging to
          <run>/log.txt. Baselines whose weights are absent (config.baselines.*.path) are skipped, said in the
          report. One task's row alone: --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
          --config.pretrain.train_seeds="(0,)" for one training seed and one SAVi seed).
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 
-Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<encoder>/ (one run:
-savi/, features/, policy/, eval/), <workdir>/report/report.md (tables per task + overall figure).
+Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<column>/ (one run:
+savi/, features/, policy/, eval/, dataset.json: its dataset's identity), <workdir>/report/report.md (tables per task
++ overall figure).
 Any field can be overridden, e.g. --config.grid.tasks="('pick',)" --config.eval.rollouts_per_seed=50.
 """
 import ml_collections
@@ -32,7 +39,7 @@ from configs import common
 
 GRIDS = {
     "tiny": (("push",), ("savi",)),
-    "small": (common.TASKS, ("savi", "ae", "objects", "state", "r3m", "dino")),
+    "small": (common.TASKS, ("savi", "ae", "objects", "state", "r3m", "dino", "savi+proprio", "ae+proprio")),
     "paper": (common.TASKS, ("savi", "r3m", "dino")),
 }
 
@@ -57,9 +64,9 @@ def get_config(variant: str = "paper"):
       # roboshape/lanes.py)
       lanes=2 if variant == "small" else 1,
       # {task: policy.train_seeds} for the runs of that task: three training seeds per run, as the paper repeats
-      # each experiment 3 times; at :small only push (training seeds triple the behaviour cloning's time)
+      # each experiment 3 times (they triple the behaviour cloning's and the evaluation's time)
       train_seeds=ml_collections.ConfigDict(
-          {"push": (0, 1, 2)} if variant == "small" else {t: (0, 1, 2) for t in tasks} if variant == "paper" else {}),
+          {t: (0, 1, 2) for t in tasks} if variant in ("small", "paper") else {}),
       # {task: policy.eval settings} for the runs of that task: how its policies are run at control time where it
       # differs from the defaults (common.TASK_CONTROL; the config above was built for the first task only)
       task_control=ml_collections.ConfigDict({t: common.TASK_CONTROL[t] for t in tasks if t in common.TASK_CONTROL}),

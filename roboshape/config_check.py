@@ -26,6 +26,7 @@ from roboshape import encoders
 from roboshape import envs
 from roboshape import ranges
 from roboshape import rundir
+from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.sim import spec as spec_lib
 
@@ -127,10 +128,27 @@ def _check_run(config) -> encoders.Kind:
   ranges.Choice("task", envs.TASKS, "the task").check(config)
   kind = encoders.get(ranges.Choice("encoder", encoders.names(),
                                     "a registered encoder; add one as a module in roboshape/encoders/").check(config))
-  if "pretrain" in _check_stages(config) and not kind.pretrain:
+  stages = _check_stages(config)
+  if "pretrain" in stages and not kind.pretrain:
     raise UserError(f"the {kind.name} encoder has no pretrain stage; drop it from --config.stages.")
   ranges.check(config, _RANGES["run"])
+  _check_pretrained_elsewhere(config, kind, stages)
   return kind
+
+
+def _check_pretrained_elsewhere(config, kind: encoders.Kind, stages: Tuple[str, ...]) -> None:
+  """pretrain.from_workdir: "" or the workdir of another run, for an encoder with a pretrain stage, in a run that
+  does not pretrain it itself."""
+  source = ranges.value(config, "pretrain.from_workdir")
+  if not isinstance(source, str):
+    raise UserError(f"pretrain.from_workdir={source!r}: use the workdir of the run that pretrained the encoder, or "
+                    "\"\" to pretrain it in this run's workdir.")
+  if source and not kind.pretrain:
+    raise UserError(f"pretrain.from_workdir={source!r}: the {kind.name} encoder has no pretrain stage to take from "
+                    "another run; set pretrain.from_workdir=\"\".")
+  if source and "pretrain" in stages:
+    raise UserError(f"pretrain.from_workdir={source!r} serves the {kind.title} pretrained there, and stages trains "
+                    "one here: drop 'pretrain' from --config.stages, or set pretrain.from_workdir=\"\".")
 
 
 def _check_env(config) -> None:
@@ -209,12 +227,21 @@ _SHARED_SECTIONS = {"pretrain": _check_pretrain}
 
 
 def _check_grid(config) -> None:
-  """grid.tasks and grid.encoders: non-empty tuples of known tasks and registered encoders; grid.publish a folder."""
-  for field, known in (("grid.tasks", envs.TASKS), ("grid.encoders", encoders.names())):
-    value = ranges.value(config, field)
-    if isinstance(value, str) or not isinstance(value, (tuple, list)) or not value or any(
-        v not in known for v in value):
-      raise UserError(f"{field}={value!r}: use a non-empty tuple of {ranges.choices(known)}.")
+  """grid.tasks: a non-empty tuple of known tasks; grid.encoders: of distinct columns, each a registered encoder
+  alone or with options (roboshape/encoders/columns.py); grid.publish a folder."""
+  tasks = ranges.value(config, "grid.tasks")
+  if isinstance(tasks, str) or not isinstance(tasks, (tuple, list)) or not tasks or any(
+      t not in envs.TASKS for t in tasks):
+    raise UserError(f"grid.tasks={tasks!r}: use a non-empty tuple of {ranges.choices(envs.TASKS)}.")
+  names = ranges.value(config, "grid.encoders")
+  if isinstance(names, str) or not isinstance(names, (tuple, list)) or not names or len(set(names)) != len(names):
+    raise UserError(f"grid.encoders={names!r}: use a non-empty tuple of distinct columns, each a registered encoder "
+                    f"({ranges.choices(encoders.names())}) alone or with options, e.g. ('savi', 'savi+proprio').")
+  for name in names:
+    try:
+      columns.parse(name)
+    except UserError as e:
+      raise UserError(f"grid.encoders={names!r}: {e}") from None
   unknown = [t for t in config.grid.get("train_seeds", {}) if t not in envs.TASKS]
   if unknown:
     raise UserError(f"grid.train_seeds names {', '.join(map(repr, unknown))}: use tasks among "
@@ -255,5 +282,18 @@ def check(config) -> None:
   from roboshape import grid  # pylint: disable=import-outside-toplevel
   _check_grid(config)
   _check_stages(config)
-  for _, _, sub, _ in grid.grid_configs(config, ""):
+  for _, column, sub, _ in grid.grid_configs(config, ""):
     check_single(sub)
+    _check_column(sub, column)
+
+
+def _check_column(sub, column: str) -> None:
+  """A grid run is the column it is named after (roboshape/encoders/columns.py): an option's field set on the whole
+  grid would make its plain columns another column's runs, under the plain column's name."""
+  actual = columns.of_config(sub)
+  if actual != column:
+    extra = [f"--config.{f}={v!r}" for f, v in columns.parse(actual)[1].items()
+             if f not in columns.parse(column)[1]]
+    raise UserError(f"{' '.join(extra)} turns an option on for every column of the grid, so its {column!r} runs "
+                    f"would be {actual!r}: leave it unset and add the columns that want it to grid.encoders "
+                    f"(e.g. '{actual}').")

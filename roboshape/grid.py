@@ -1,33 +1,48 @@
 """The runs of a grid config (configs/reproduce.py): an experiment config plus `grid.tasks` and `grid.encoders`.
 
-  for task, encoder, sub_config, sub_workdir in grid_configs(config, workdir): ...
+  for task, column, sub_config, sub_workdir in grid_configs(config, workdir): ...
 
-roboshape/stages.py runs them (then the report over all of them); roboshape/config_check.py checks each of them
-before the first one starts.
+`grid.encoders` names columns: a registered encoder ("savi"), or one with options beyond the paper
+("savi+proprio"; roboshape/encoders/columns.py says which fields each option sets). roboshape/stages.py runs them
+(then the report over all of them); roboshape/config_check.py checks each of them before the first one starts.
 """
 from roboshape import encoders
 from roboshape import rundir
+from roboshape.encoders import columns
 
 
 def grid_configs(config, workdir: str):
-  """(task, encoder, config, workdir) of each run of a grid config, in the order the grid runs them.
+  """(task, column, config, workdir) of each run of a grid config, in the order the grid runs them.
 
-  Each run is the grid's config with its task and encoder set, in rundir.grid_run_dir (<workdir>/<task>_<encoder>/),
-  reading the task's dataset from rundir.grid_data_dir (<data_root>/<task>, shared by the task's runs; collected
-  once). Runs of encoders with a pretraining stage (SAVi) come first within a task. `grid.train_seeds`, a
-  {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names; `grid.task_control`, a
-  {task: {field: value}} mapping, updates policy.eval for them (how that task's policies are run at control time);
-  `grid.task_train`, the same for policy.train (how long that task's policies are trained).
+  Each run is the grid's config with its task set and its column's encoder and option fields (columns.apply), in
+  rundir.grid_run_dir (<workdir>/<task>_<column>/), reading the task's dataset from rundir.grid_data_dir
+  (<data_root>/<task>, shared by the task's runs; collected once). Within a task, the plain columns of encoders
+  with a pretraining stage (SAVi, AE) come first, then their columns with options, then the others. A column whose
+  options set policy fields alone (columns.policy_only) serves the encoder its plain column's run pretrained when
+  the grid has that column (pretrain.from_workdir, and no pretrain stage of its own): the policy fields change
+  nothing pretraining reads, so the two runs would pretrain the same model. `pretrained_from` gives these pairs.
+  `grid.train_seeds`, a {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names;
+  `grid.task_control`, a {task: {field: value}} mapping, updates policy.eval for them (how that task's policies are
+  run at control time); `grid.task_train`, the same for policy.train (how long that task's policies are trained).
   """
   import ml_collections  # pylint: disable=import-outside-toplevel
   base = config.to_dict()
   base.pop("grid")
-  order = sorted(config.grid.encoders, key=lambda e: not encoders.get(e).pretrain)
+  names = tuple(config.grid.encoders)
+
+  def order(column):
+    encoder = columns.parse(column)[0]
+    return not encoders.get(encoder).pretrain, column != encoder
+
   for task in config.grid.tasks:
-    for encoder in order:
+    for column in sorted(names, key=order):
       sub = ml_collections.ConfigDict(base)
-      sub.task, sub.encoder, sub.name = task, encoder, f"{task}_{encoder}"
-      pretrains = encoders.get(encoder).pretrain
+      sub.task, sub.name = task, f"{task}_{column}"
+      columns.apply(sub, column)
+      pretrains = encoders.get(sub.encoder).pretrain
+      if pretrains and sub.encoder in names and column != sub.encoder and columns.policy_only(column):
+        sub.pretrain.from_workdir = rundir.grid_run_dir(workdir, task, sub.encoder)
+        pretrains = False
       sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
       sub.data.dir = rundir.grid_data_dir(config, workdir, task)
       seeds = config.grid.get("train_seeds", {}).get(task)
@@ -39,4 +54,10 @@ def grid_configs(config, workdir: str):
       train = config.grid.get("task_train", {}).get(task)
       if train:
         sub.policy.train.update(train.to_dict())
-      yield task, encoder, sub, rundir.grid_run_dir(workdir, task, encoder)
+      yield task, column, sub, rundir.grid_run_dir(workdir, task, column)
+
+
+def pretrained_from(runs) -> dict:
+  """{run workdir: the workdir of the run whose pretrained encoder it serves} over `grid_configs`' runs: the runs
+  that must wait for another run to end (roboshape/lanes.py)."""
+  return {sub_dir: sub.pretrain.from_workdir for _, _, sub, sub_dir in runs if sub.pretrain.get("from_workdir")}

@@ -25,7 +25,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Any, Callable, List, Sequence, Set, Tuple
+from typing import Any, Callable, List, Mapping, Optional, Sequence, Set, Tuple
 
 from roboshape import fileio
 from roboshape.errors import UserError
@@ -94,18 +94,34 @@ def _interrupt(children) -> None:
       child.wait()
 
 
+def next_job(pending: Sequence[Job], running_dirs: Set[str], after: Mapping[str, str]) -> Optional[int]:
+  """The index in `pending` of the first job that may start: one whose run_dir `after` maps to no run_dir among
+  the jobs pending or running (`running_dirs`). None when every pending job waits; with nothing running, the first
+  pending job all the same (what it waits for is not among the jobs left, so it never comes)."""
+  unfinished = set(running_dirs) | {job[2] for job in pending}
+  for i, job in enumerate(pending):
+    if after.get(job[2]) not in unfinished:
+      return i
+  return 0 if pending and not running_dirs else None
+
+
 def run_parallel(run: Run, jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, str], None],
-                 poll_seconds: float = 2.0) -> None:
+                 poll_seconds: float = 2.0, after: Optional[Mapping[str, str]] = None) -> None:
   """Runs `run(config, run_dir)` of each job in its own child, in order, up to `lanes` at once, one lane per share of
   the cores (`lane_cores`); calls `on_done(job, exit code, last line of its log)` as each one ends (exit code 2: a
-  one-line UserError)."""
+  one-line UserError). `after` maps a job's run_dir to the run_dir of a job it waits for (a run that serves another
+  run's pretrained encoder): it starts once that one has ended, and the jobs behind it may start before it
+  (`next_job`)."""
   free = lane_cores(lanes)
   pending = list(jobs)
   running = []      # (job, child, cores, start)
   try:
     while pending or running:
       while pending and free:
-        job, cores = pending.pop(0), free.pop(0)
+        index = next_job(pending, {e[0][2] for e in running}, after or {})
+        if index is None:
+          break
+        job, cores = pending.pop(index), free.pop(0)
         print(f"[roboshape] lane on cores {sorted(cores)}: {job[0]} -> {job[2]} (log: "
               f"{os.path.join(job[2], LOG_FILE)})", flush=True)
         running.append((job, _start(run, job, cores), cores, time.time()))

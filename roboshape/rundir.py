@@ -2,6 +2,8 @@
 
   <workdir>/config.json      the config that ran (`save_config`, `load_config`)
   <workdir>/data/            the datasets (`data_root`: config.data.dir when set), one per task
+  <workdir>/dataset.json     the identity of the dataset the run was trained on, wherever it lies (`dataset_record`;
+                             written by the collect stage, roboshape/data)
   <workdir>/<encoder>/       a pretrained encoder's: checkpoints/, tb/, val_metrics.json/.png (`pretrain_dir`);
                              savi/ (with figures/) for SAVi (`savi_dir`), ae/ for the AE (`ae_dir`)
   <workdir>/features/<key>/  encoder features cached per (dataset, encoder checkpoint)       (`features_dir`)
@@ -10,8 +12,10 @@
   <workdir>/eval/            results.jsonl/.json/.csv, tables, plots, videos/                 (`eval_dir`)
   <workdir>/report/          the report over a grid's runs (or the run itself)                (`report_dir`)
 
-A grid config (configs/reproduce.py) runs each (task, encoder) in <workdir>/<task>_<encoder>/ (`grid_run_dir`),
-reading the task's dataset from <data_root>/<task>; a grid run skipped for bad input leaves SKIPPED.json there.
+A grid config (configs/reproduce.py) runs each (task, column) in <workdir>/<task>_<column>/ (`grid_run_dir`; a
+column is an encoder, alone or with options: roboshape/encoders/columns.py), reading the task's dataset from
+<data_root>/<task>; a grid run skipped for bad input leaves SKIPPED.json there. A run with pretrain.from_workdir set
+serves the encoder another run's pretrain stage trained, from that run's folders (`pretrained_workdir`).
 `STAGES` names the stages, in the order a config runs them.
 
 Training seeds, one name for every training stage (`train_seeds`): with pretrain.train_seeds = (s1, s2, ...)
@@ -43,6 +47,7 @@ RESULTS_FILE = "results.json"      # <eval_dir>/results.json: every rollout and 
 RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run's): one row per rollout
 RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run working in the workdir (`hold_workdir`)
 SELECTION_FILE = "selected.json"   # <encoder>/selected.json: the seed of pretrain.train_seeds pretraining selected
+DATASET_FILE = "dataset.json"      # <workdir>/dataset.json (and a published run's): its dataset's identity
 
 # Fields that moved, old dotted name -> new: the pretraining settings SAVi and the AE share left the savi section.
 RENAMED = {
@@ -157,6 +162,18 @@ def data_root(config, workdir: str) -> str:
   return config.data.dir or os.path.join(workdir, "data")
 
 
+def dataset_record(workdir: str) -> str:
+  """<workdir>/dataset.json: the identity of the dataset the run was trained on (roboshape.data.record)."""
+  return os.path.join(workdir, DATASET_FILE)
+
+
+def pretrained_workdir(config, workdir: str) -> str:
+  """The workdir whose pretrain stage trained the run's encoder: the run's own, or the one its
+  pretrain.from_workdir names (another run of the same task and encoder, e.g. a grid's plain column, whose SAVi or
+  AE a column with policy options serves). A config.json without the field is the run's own."""
+  return (config.get("pretrain") or {}).get("from_workdir", "") or workdir
+
+
 def pretrain_dir(workdir: str, encoder: str) -> str:
   """The folder of an encoder's pretrain stage, named after the encoder (savi/, ae/; absent for one without)."""
   return os.path.join(workdir, encoder)
@@ -237,9 +254,10 @@ def checkpoints(stage_dir: str) -> str:
   return os.path.join(stage_dir, CHECKPOINTS)
 
 
-def grid_run_dir(workdir: str, task: str, encoder: str) -> str:
-  """The workdir of one run of a grid."""
-  return os.path.join(workdir, f"{task}_{encoder}")
+def grid_run_dir(workdir: str, task: str, column: str) -> str:
+  """The workdir of one run of a grid: <workdir>/<task>_<column>/ (a column: an encoder, e.g. "savi", or an encoder
+  with options, "savi+proprio")."""
+  return os.path.join(workdir, f"{task}_{column}")
 
 
 def grid_data_dir(config, workdir: str, task: str) -> str:

@@ -26,6 +26,7 @@ from roboshape import rundir
 from roboshape.errors import DiskFull
 from roboshape.errors import UserError
 from roboshape.grid import grid_configs
+from roboshape.grid import pretrained_from
 
 STAGE_MODULES = {
     "collect": "roboshape.data.collect",
@@ -107,7 +108,7 @@ def _check_dataset(config, workdir: str) -> None:
 
 
 def run_grid(config, workdir: str) -> None:
-  """Runs every (task, encoder) of a grid config, then the report over all of them.
+  """Runs every (task, column) of a grid config, then the report over all of them.
 
   A baseline (any encoder but SAVi) whose run raises `UserError` (e.g. its pretrained weights are absent) is
   recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
@@ -129,16 +130,16 @@ def run_grid(config, workdir: str) -> None:
     if lanes > 1:
       _run_lanes(config, runs, lanes)
     else:
-      for task, encoder, sub, sub_dir in runs:
-        print(f"[roboshape] grid run {task} x {encoder} -> {sub_dir}", flush=True)
+      for task, column, sub, sub_dir in runs:
+        print(f"[roboshape] grid run {task} x {column} -> {sub_dir}", flush=True)
         try:
           run(sub, sub_dir)
         except DiskFull:
           raise
         except UserError as e:
-          _finish_run(config, task, encoder, sub, sub_dir, str(e))
+          _finish_run(config, task, column, sub, sub_dir, str(e))
           continue
-        _finish_run(config, task, encoder, sub, sub_dir, None)
+        _finish_run(config, task, column, sub, sub_dir, None)
     if "report" in config.stages:
       with disk_full_is_one_line("the report stage", workdir):
         importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
@@ -146,7 +147,8 @@ def run_grid(config, workdir: str) -> None:
 
 def _run_lanes(config, runs, lanes: int) -> None:
   """The grid's runs in `lanes` parallel lanes, after each task's dataset is collected here: each lane's child
-  process calls `run` on its run's config, as this process would."""
+  process calls `run` on its run's config, as this process would. A run that serves another run's pretrained
+  encoder (pretrain.from_workdir) starts once that run has ended."""
   collected = set()
   for task, _, sub, sub_dir in runs:
     if task not in collected and "collect" in sub.stages:
@@ -155,43 +157,43 @@ def _run_lanes(config, runs, lanes: int) -> None:
       first.stages = ("collect",)
       run(first, sub_dir)
     collected.add(task)
-  by_dir = {sub_dir: (task, encoder, sub) for task, encoder, sub, sub_dir in runs}
+  by_dir = {sub_dir: (task, column, sub) for task, column, sub, sub_dir in runs}
   failed = []
 
   def on_done(job, code: int, line: str) -> None:
-    task, encoder, sub = by_dir[job[2]]
+    task, column, sub = by_dir[job[2]]
     if code == 0:
-      _finish_run(config, task, encoder, sub, job[2], None)
+      _finish_run(config, task, column, sub, job[2], None)
       return
     message = line.removeprefix("roboshape: error: ") if code == 2 else f"exit status {code}: {line}"
-    if code == 2 and encoders.get(encoder).baseline and not message.startswith(DiskFull.PREFIX):
-      _finish_run(config, task, encoder, sub, job[2], message)
+    if code == 2 and encoders.get(sub.encoder).baseline and not message.startswith(DiskFull.PREFIX):
+      _finish_run(config, task, column, sub, job[2], message)
     else:
-      failed.append(f"{task} x {encoder} ({message})")
+      failed.append(f"{task} x {column} ({message})")
 
-  lanes_lib.run_parallel(run, [(f"{task} x {encoder}", sub, sub_dir) for task, encoder, sub, sub_dir in runs],
-                         lanes, on_done)
+  lanes_lib.run_parallel(run, [(f"{task} x {column}", sub, sub_dir) for task, column, sub, sub_dir in runs],
+                         lanes, on_done, after=pretrained_from(runs))
   if failed:
     raise UserError(f"grid runs failed: {'; '.join(failed)}; their logs are <run>/{lanes_lib.LOG_FILE}, and the "
                     "same command resumes them.")
 
 
-def _finish_run(config, task: str, encoder: str, sub, sub_dir: str, error) -> None:
+def _finish_run(config, task: str, column: str, sub, sub_dir: str, error) -> None:
   """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi
   (Kind.baseline); a run that ended well loses an old SKIPPED.json and is published when the grid publishes."""
   skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
   if error is not None:
-    if not encoders.get(encoder).baseline:
+    if not encoders.get(sub.encoder).baseline:
       raise UserError(error)
     os.makedirs(sub_dir, exist_ok=True)
     fileio.atomic_write_json(skipped, {"reason": error})
-    print(f"[roboshape] skipped {task} x {encoder}: {error}", flush=True)
+    print(f"[roboshape] skipped {task} x {column}: {error}", flush=True)
     return
   if os.path.exists(skipped):
     os.remove(skipped)
   if config.grid.get("publish") and "evaluate" in sub.stages:
     from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
-    print(f"[roboshape] published {task} x {encoder} to {publish.publish(sub, sub_dir, config.grid.publish)}",
+    print(f"[roboshape] published {task} x {column} to {publish.publish(sub, sub_dir, config.grid.publish)}",
           flush=True)
 
 

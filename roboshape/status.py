@@ -13,6 +13,7 @@ from typing import Dict, List
 
 from roboshape import grid
 from roboshape import rundir
+from roboshape.encoders import columns
 from roboshape.errors import UserError
 
 
@@ -53,12 +54,13 @@ def run_status(stages, run_dir: str) -> Dict:
 
 
 def workdir_status(workdir: str) -> List[Dict]:
-  """One row per run of the workdir: task, encoder, run_dir and `run_status`'s fields."""
+  """One row per run of the workdir: task, encoder (its column: roboshape/encoders/columns.py), run_dir and
+  `run_status`'s fields."""
   config = rundir.load_config(workdir)
   if "grid" in config:
     runs = [(t, e, sub.stages, d) for t, e, sub, d in grid.grid_configs(config, workdir)]
   else:
-    runs = [(config.task, config.encoder, config.stages, workdir)]
+    runs = [(config.task, columns.of_config(config), config.stages, workdir)]
   return [dict(task=t, encoder=e, run_dir=d, **run_status(tuple(stages), d)) for t, e, stages, d in runs]
 
 

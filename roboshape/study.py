@@ -7,8 +7,9 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
   changed                         every config field that differs from `configs/common.get_config(task, encoder,
                                   scale)`, scale the variant up to any "_" (an old run's may carry a suffix, e.g.
                                   small_chunk), or for a field removed from the configs from the default it had
-                                  (rundir.REMOVED), except the bookkeeping ones (IGNORED: the dataset path, worker
-                                  count, the evaluated levels, stages, seeds of the run itself). A study whose
+                                  (rundir.REMOVED), except the bookkeeping ones (IGNORED: the dataset path, the
+                                  run whose pretrained encoder it serves, worker count, the evaluated levels,
+                                  stages, seeds of the run itself). A study whose
                                   probes started from other defaults than today's (a recipe adopted since) states
                                   those in <study>/baseline.json ({"task or *": {"dotted.field": value}}), and its
                                   rows name what changed from them
@@ -43,8 +44,8 @@ CSV_NAME = "probes.csv"
 README_NAME = "README.md"
 BASELINE_NAME = "baseline.json"
 BEGIN, END = "<!-- probes:begin (generated from probes.csv by roboshape.study) -->", "<!-- probes:end -->"
-IGNORED = ("data.dir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds", "pretrain.train_seeds",
-           "seed", "name", "variant")
+IGNORED = ("data.dir", "pretrain.from_workdir", "sim.num_workers", "eval.levels", "stages", "policy.train_seeds",
+           "pretrain.train_seeds", "seed", "name", "variant")
 # What a probe keeps in the study (<study>/<probe>/, same layout): everything its row is read from, and the
 # evaluation's milestone table and the policy's validation curve.
 KEPT = ("config.json", "stages.json", "eval/results.csv", "eval/milestones.md", "policy/val_metrics.json",

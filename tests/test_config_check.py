@@ -56,6 +56,15 @@ BAD_CONFIGS = [
      "grid.encoders"),
     ("grid run with a bad field", ("--config=configs/reproduce.py:tiny", "--config.policy.history=0"),
      "policy.history"),
+    ("grid column of an unknown option", ("--config=configs/reproduce.py:tiny",
+                                          "--config.grid.encoders=('savi', 'savi+wings')"), "unknown option 'wings'"),
+    ("an option turned on for a whole grid", ("--config=configs/reproduce.py:tiny", "--config.policy.proprio=True"),
+     "--config.policy.proprio=True turns an option on for every column"),
+    ("a SAVi pretrained elsewhere and here", (SAVI, "--config.pretrain.from_workdir=runs/pick_savi"),
+     "pretrain.from_workdir"),
+    ("a pretrained encoder from elsewhere for one without", ("--config=configs/pick_state.py:tiny",
+                                                             "--config.pretrain.from_workdir=runs/pick_savi"),
+     "pretrain.from_workdir"),
 ]
 
 

@@ -98,6 +98,33 @@ def test_round_trip_of_synthetic_episodes(synthetic_dataset):
   assert [e["seed"] for e in reader.read_episodes(synthetic_dataset, "val")] == [1_000_000, 1_000_001]
 
 
+def test_the_dataset_identity_follows_the_shards_checksums_not_the_folder(synthetic_dataset, tmp_path):
+  import roboshape.data as data_lib  # pylint: disable=import-outside-toplevel
+  state = rlds.load_state(synthetic_dataset)
+  first = data_lib.read_record(synthetic_dataset)
+  assert first["identity"] == data_lib.identity(state) and len(first["identity"]) == 16
+  assert (first["episodes"], first["complete"], first["name"]) == ({"train": 4, "val": 2}, True, "roboshape_push")
+  # a copy of the dataset in another folder is the same dataset, and the run's record of it names no folder
+  copy = str(shutil.copytree(synthetic_dataset, tmp_path / "elsewhere" / "roboshape_push" / "1.0.0"))
+  assert data_lib.read_record(copy) == first
+  path = collect.record_dataset(copy, str(tmp_path / "run"))
+  assert path == os.path.join(str(tmp_path / "run"), "dataset.json")
+  with open(path) as f:
+    text = f.read()
+  assert json.loads(text) == first and str(tmp_path) not in text and "elsewhere" not in text
+  # a shard whose recorded checksum changes makes another dataset, and so does a shard less
+  changed = json.loads(json.dumps(state))
+  changed["splits"]["val"]["shards"][-1]["sha256"] = "0" * 64
+  assert data_lib.identity(changed) != first["identity"]
+  with open(os.path.join(copy, "roboshape.json"), "w") as f:
+    json.dump(changed, f)
+  assert data_lib.read_record(copy)["identity"] == data_lib.identity(changed)
+  fewer = json.loads(json.dumps(state))
+  fewer["splits"]["train"]["shards"].pop()
+  assert len({data_lib.identity(fewer), data_lib.identity(changed), first["identity"]}) == 3
+  assert data_lib.read_record(str(tmp_path / "absent")) is None
+
+
 def test_depth_round_trips_and_comes_with_the_clips(tmp_path, synthetic_dataset):
   """A dataset collected with depth stores it (uint16 mm), reads it back, batches it with the clips, validates it."""
   def with_depth(seed):

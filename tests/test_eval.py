@@ -2,6 +2,7 @@
 import csv
 import json
 import os
+import shutil
 
 import ml_collections
 import numpy as np
@@ -609,23 +610,96 @@ def test_evaluate_each_training_seed_into_its_own_log_then_one_table(tmp_path):
 def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
   small = reproduce.get_config("small")
   assert small.grid.publish == "results/small" and reproduce.get_config("tiny").grid.publish == ""
-  assert set(small.grid.tasks) == set(common.TASKS) and {"savi", "ae", "objects", "state"} <= set(small.grid.encoders)
-  seeds = {(task, enc): tuple(sub.policy.train_seeds) for task, enc, sub, _ in stages.grid_configs(small, "/w")}
-  assert seeds[("push", "state")] == (0, 1, 2) and seeds[("pick", "savi")] == ()
+  assert set(small.grid.tasks) == set(common.TASKS)
+  assert {"savi", "ae", "objects", "state", "savi+proprio", "ae+proprio"} <= set(small.grid.encoders)
+  runs = list(stages.grid_configs(small, "/w"))
+  seeds = {(task, column): tuple(sub.policy.train_seeds) for task, column, sub, _ in runs}
+  assert set(seeds.values()) == {(0, 1, 2)} and len(seeds) == 3 * len(small.grid.encoders)   # every cell, every task
   assert tuple(small.pretrain.train_seeds) == (0, 1, 2)
   assert tuple(reproduce.get_config("tiny").pretrain.train_seeds) == ()
-  # each run is its task x encoder's own config (place: a sampled mode, one frame at control time) but for what the
-  # grid sets on purpose: the shared dataset, the seeds and the stages
+  # each run is its task x column's own config (place: a sampled mode, one frame at control time; +proprio: the
+  # encoder with policy.proprio) but for what the grid sets on purpose: the shared dataset, the seeds, the stages,
+  # and for a +proprio column the plain column's run, whose pretrained encoder it serves
   def flat(d, prefix=""):
     out = {}
     for k, v in d.items():
       out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
     return out
-  for task, enc, sub, _ in stages.grid_configs(small, "/w"):
-    a, b = flat(sub.to_dict()), flat(common.get_config(task, enc, "small").to_dict())
+  for task, column, sub, sub_dir in runs:
+    a, b = flat(sub.to_dict()), flat(common.get_config(task, column, "small").to_dict())
     differ = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
-    assert differ <= {"data.dir", "policy.train_seeds", "pretrain.train_seeds", "stages"}, (task, enc, differ)
-  evals = {task: (sub.policy.eval.action, sub.policy.eval.history) for task, _, sub, _ in stages.grid_configs(small, "/w")}
+    assert differ <= {"data.dir", "policy.train_seeds", "pretrain.train_seeds", "pretrain.from_workdir", "stages"}, (
+        task, column, differ)
+    assert sub_dir == f"/w/{task}_{column}" and sub.name == f"{task}_{column}"
+  proprio = {(task, column): sub for task, column, sub, _ in runs if column.endswith("+proprio")}
+  assert len(proprio) == 6
+  for (task, column), sub in proprio.items():
+    plain = column.split("+")[0]
+    assert (sub.encoder, sub.policy.proprio) == (plain, True)
+    assert sub.pretrain.from_workdir == f"/w/{task}_{plain}" and "pretrain" not in sub.stages
+  plain_savi = next(sub for task, column, sub, _ in runs if (task, column) == ("push", "savi"))
+  assert plain_savi.pretrain.from_workdir == "" and "pretrain" in plain_savi.stages and not plain_savi.policy.proprio
+  # within a task the plain SAVi and AE come first, then their +proprio columns, which wait for them in lanes
+  assert [c for t, c, _, _ in runs if t == "pick"][:4] == ["savi", "ae", "savi+proprio", "ae+proprio"]
+  assert stages.pretrained_from(runs)["/w/place_ae+proprio"] == "/w/place_ae"
+  evals = {task: (sub.policy.eval.action, sub.policy.eval.history) for task, _, sub, _ in runs}
   assert evals == {"push": ("mean", 0), "pick": ("mean", 0), "place": ("sample", 1)}
-  steps = {task: sub.policy.train.steps for task, _, sub, _ in stages.grid_configs(small, "/w")}
+  steps = {task: sub.policy.train.steps for task, _, sub, _ in runs}
   assert steps == {"push": 5000, "pick": 5000, "place": 15000}
+
+
+def test_a_proprio_column_without_its_plain_column_pretrains_its_own_encoder():
+  config = reproduce.get_config("small")
+  config.grid.tasks, config.grid.encoders = ("push",), ("ae+proprio", "state")
+  (_, column, sub, _), _ = stages.grid_configs(config, "/w")
+  assert (column, sub.encoder, sub.policy.proprio, sub.pretrain.from_workdir) == ("ae+proprio", "ae", True, "")
+  assert "pretrain" in sub.stages and stages.pretrained_from(stages.grid_configs(config, "/w")) == {}
+
+
+def test_a_column_with_options_labels_its_rollouts_its_tables_and_its_published_folder(tmp_path):
+  config = common.get_config("push", "savi+proprio", "tiny")
+  config.eval.levels, config.eval.num_seeds, config.eval.rollouts_per_seed = ("train",), 1, 2
+  workdir = str(tmp_path / "push_savi+proprio")
+  rundir.save_config(config, workdir)
+  # rollouts logged under the plain encoder's name (before runs were labelled by column) are labelled too
+  records = [dict(task="push", encoder="savi", level="train", seed_index=0, rollout=r, seed=1000 + r,
+                  success=r == 0, length=5, ended="success" if r == 0 else "horizon") for r in range(2)]
+  closed_loop.write_outputs(config, workdir, records)
+  with open(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_CSV), newline="") as f:
+    assert [r["encoder"] for r in csv.DictReader(f)] == ["savi+proprio"] * 2
+  with open(os.path.join(rundir.eval_dir(workdir), "table.md")) as f:
+    assert f.readline() == "### push: success rate, SAVi+proprio\n"
+  root = str(tmp_path / "results")
+  assert publish.publish(config, workdir, root) == os.path.join(root, "push_savi+proprio")
+  with open(report.build_published_report(root)["table_push.md"]) as f:
+    assert f.read().splitlines()[:3] == ["| | SAVi+proprio |", "| --- | --- |", "| none | **0.50** ± 0.00 |"]
+
+
+def _published_cell(root, name: str, identity=None) -> None:
+  """A published cell <root>/<name>/ of one rollout, recording dataset `identity` (none: no dataset.json)."""
+  task, encoder = name.split("_", 1)
+  os.makedirs(os.path.join(root, name))
+  with open(os.path.join(root, name, rundir.RESULTS_CSV), "w") as f:
+    f.write(f"task,encoder,level,seed_index,rollout,seed,success,length,ended\n"
+            f"{task},{encoder},train,0,0,7,True,9,success\n")
+  if identity:
+    with open(os.path.join(root, name, rundir.DATASET_FILE), "w") as f:
+      json.dump({"identity": identity, "name": f"roboshape_{task}"}, f)
+
+
+def test_the_published_report_refuses_cells_of_one_task_trained_on_different_datasets(tmp_path, capsys):
+  root = str(tmp_path / "results")
+  for name, identity in (("push_savi", "aaaa"), ("push_ae", "aaaa"), ("push_state", "bbbb"), ("pick_state", "cccc"),
+                         ("pick_savi", None)):
+    _published_cell(root, name, identity)
+  assert report.main(["report", root]) == 2
+  line = capsys.readouterr().err.strip()
+  assert line == ("roboshape: error: the push cells were trained on different datasets (push_ae, push_savi on "
+                  "dataset aaaa; push_state on dataset bbbb): publish every cell of a task from runs on one dataset "
+                  f"(one grid), or move the odd cells out of {root}.")
+  assert sorted(os.listdir(root)) == ["pick_savi", "pick_state", "push_ae", "push_savi", "push_state"]
+  assert not any(os.path.exists(os.path.join(root, n, "README.md")) for n in os.listdir(root))   # nothing written
+  # one dataset per task (a cell without a record is not compared): the report is built
+  shutil.move(os.path.join(root, "push_state"), str(tmp_path / "push_state"))
+  assert report.main(["report", root]) == 0
+  assert os.path.isfile(os.path.join(root, "report", "report.md"))

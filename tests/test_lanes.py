@@ -20,6 +20,17 @@ def test_lane_cores_deal_this_process_cores_once_each():
     assert sorted(c for lane in dealt for c in lane) == cores
 
 
+def test_a_run_that_serves_another_runs_encoder_waits_for_it_and_the_runs_behind_it_go_first():
+  jobs = [(name, None, f"/w/{name}") for name in ("savi", "ae", "savi+proprio", "ae+proprio", "state")]
+  after = {"/w/savi+proprio": "/w/savi", "/w/ae+proprio": "/w/ae"}
+  assert lanes.next_job(jobs, set(), after) == 0
+  assert lanes.next_job(jobs[2:], {"/w/savi"}, after) == 1          # ae ended: ae+proprio before savi+proprio
+  assert lanes.next_job(jobs[2:3], {"/w/savi"}, after) is None      # savi+proprio waits while savi runs
+  assert lanes.next_job(jobs[2:3], set(), after) == 0               # and starts once it has ended
+  assert lanes.next_job(jobs[2:4], set(), {"/w/savi+proprio": "/w/ae+proprio", "/w/ae+proprio": "/w/savi+proprio"}
+                        ) == 0                                      # a circle of waits never stalls the grid
+
+
 def test_children_run_pinned_and_report_their_exit_codes(tmp_path):
   jobs = []
   for name in ("a", "bad"):

@@ -644,6 +644,40 @@ def test_no_seeds_keeps_the_single_run_layout(trained, encoder):
   assert encoder.identity == f"savi:{os.path.abspath(rundir.checkpoints(root))}@{STEPS}"
 
 
+def test_a_run_with_pretrain_from_workdir_serves_that_runs_savi_and_refuses_one_pretrained_otherwise(
+    trained, encoder, tmp_path):
+  """A grid's savi+proprio column: the SAVi its plain column's run pretrained, on the same dataset folder."""
+  config = tiny_config()
+  config.policy.proprio = True
+  config.pretrain.from_workdir = trained["workdir"]
+  config.data.dir = os.path.join(trained["workdir"], "data")    # the folder the plain run's data.dir="" names
+  config.stages = tuple(s for s in config.stages if s != "pretrain")
+  config_check.check(config)
+  workdir = str(tmp_path / "push_savi+proprio")
+  rundir.save_config(config, workdir)
+  served = savi_encoder.load_encoder(workdir)
+  assert served.identity == encoder.identity and _tree_equal(served.params, encoder.params)
+  assert encoders.build_encoder(config, workdir).identity.startswith(encoder.identity + "+proprio:")
+  assert not os.path.exists(rundir.savi_dir(workdir))
+  # pretrained with another schedule, or on another dataset folder: refused in one line
+  config.pretrain.train.steps = STEPS + 1
+  rundir.save_config(config, workdir)
+  with pytest.raises(UserError, match=r"was pretrained with other settings \(pretrain differ"):
+    savi_encoder.load_encoder(workdir)
+  config.pretrain.train.steps, config.data.dir = STEPS, ""
+  rundir.save_config(config, workdir)
+  with pytest.raises(UserError, match=r"other settings \(data differ"):
+    savi_encoder.load_encoder(workdir)
+  config.pretrain.from_workdir = str(tmp_path / "nowhere")
+  rundir.save_config(config, workdir)
+  with pytest.raises(UserError, match="holds no run yet .* run that run's pretrain stage first"):
+    savi_encoder.load_encoder(workdir)
+  # and a run cannot both serve another run's SAVi and pretrain one
+  config.stages = ("pretrain",)
+  with pytest.raises(UserError, match="drop 'pretrain' from --config.stages"):
+    config_check.check(config)
+
+
 def test_each_seed_trains_in_its_own_folder_with_its_own_params(seeded):
   root = rundir.savi_dir(seeded["workdir"])
   assert sorted(os.listdir(root)) == ["seed_1", "seed_3", "seeds_fg_ari.png", "selected.json"]

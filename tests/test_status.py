@@ -151,3 +151,34 @@ def test_publish_refuses_a_run_without_evaluation_results_and_writes_nothing(tmp
   with pytest.raises(UserError, match="no evaluation results"):
     publish.publish(config, workdir, str(tmp_path / "results"))
   assert not os.path.exists(tmp_path / "results")
+
+
+def test_publish_records_the_dataset_and_takes_the_encoder_files_of_the_run_that_pretrained_it(tmp_path):
+  import shutil  # pylint: disable=import-outside-toplevel
+  from roboshape import data as data_lib  # pylint: disable=import-outside-toplevel
+  config, workdir = _finished_run(tmp_path)
+  # The plain run has no dataset.json of its own (collected before runs recorded one): made from its roboshape.json.
+  state = {"name": "roboshape_push", "complete": True, "env_version": "v",
+           "splits": {"train": {"shards": [{"sha256": "ab", "seeds": [0, 2]}]},
+                      "val": {"shards": [{"sha256": "cd", "seeds": [1000000]}]}}}
+  dataset = data_lib.dataset_path(config, workdir)
+  os.makedirs(dataset)
+  with open(os.path.join(dataset, data_lib.STATE_FILE), "w") as f:
+    json.dump(state, f)
+  root = str(tmp_path / "results")
+  with open(os.path.join(publish.publish(config, workdir, root), "dataset.json")) as f:
+    assert json.load(f) == dict(identity=data_lib.identity(state), name="roboshape_push", complete=True,
+                                env_version="v", episodes={"train": 2, "val": 1}, shards={"train": 1, "val": 1})
+  # A +proprio run serving that run's SAVi: its own folder, its own dataset.json, the SAVi's curve from the other run.
+  proprio = common.get_config("push", "savi+proprio", "tiny")
+  proprio.pretrain.from_workdir = workdir
+  other = str(tmp_path / "proprio")
+  shutil.copytree(workdir, other, ignore=shutil.ignore_patterns("savi", "data"))
+  with open(rundir.dataset_record(other), "w") as f:
+    json.dump({"identity": "own"}, f)
+  dest = publish.publish(proprio, other, root)
+  assert dest == os.path.join(root, "push_savi+proprio")
+  with open(os.path.join(dest, "savi_val_metrics.json")) as f:
+    assert f.read() == "[1]"
+  with open(os.path.join(dest, "dataset.json")) as f:
+    assert json.load(f) == {"identity": "own"}

@@ -6,10 +6,19 @@
 Modules: `rlds` (layout + writer), `reader` (episodes and clip batches), `collect` (the "collect" stage),
 `validate` and `browse` (command-line tools). Importing this package is cheap: TensorFlow is imported only by the
 modules that read or write.
+
+A dataset's identity (`identity`, `record`, `read_record`) is a hash over its shards' sha256 as its roboshape.json
+records them: it names what the dataset holds, not where it lies, so every copy of a dataset has the same identity
+and a dataset with any shard changed, added or removed has another. Each run records the identity of the dataset
+it was trained on (<workdir>/dataset.json, written by the collect stage), and so does each published cell.
 """
+import hashlib
+import json
 import os
+from typing import Any, Dict, Mapping, Optional
 
 from roboshape import rundir
+from roboshape.errors import UserError
 
 VERSION = "1.0.0"
 SPLITS = ("train", "val")
@@ -24,3 +33,48 @@ def dataset_name(task: str) -> str:
 def dataset_path(config, workdir: str) -> str:
   """The directory `tfds.builder_from_directory` reads: <rundir.data_root>/roboshape_<task>/<VERSION>."""
   return os.path.join(rundir.data_root(config, workdir), dataset_name(config.task), VERSION)
+
+
+def read_state(path: str) -> Optional[Dict[str, Any]]:
+  """The roboshape.json of the dataset at `path` as it is, or None when there is none; a UserError when it cannot be
+  read."""
+  state_path = os.path.join(path, STATE_FILE)
+  if not os.path.exists(state_path):
+    return None
+  try:
+    with open(state_path, encoding="utf-8") as f:
+      state = json.load(f)
+    if not isinstance(state, dict):
+      raise ValueError(f"a JSON {type(state).__name__}, not a record")
+  except (OSError, ValueError) as e:
+    raise UserError(f"{state_path} is unreadable ({e}): the dataset's record is damaged. Copy it back from a "
+                    "backup if you have one; otherwise collect a new dataset into another --config.data.dir (or "
+                    f"move {path} away and collect again). It is left as it is.") from None
+  return state
+
+
+def identity(state: Mapping[str, Any]) -> str:
+  """16 hex digits of the sha256 of every split's shard checksums, in shard order, from a roboshape.json."""
+  checksums = {split: [shard["sha256"] for shard in info["shards"]] for split, info in state["splits"].items()}
+  return hashlib.sha256(json.dumps(checksums, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def record(state: Mapping[str, Any]) -> Dict[str, Any]:
+  """What a run records of its dataset (rundir.DATASET_FILE): its identity, name, whether it was complete, the
+  simulator's env version, and episodes and shards per split; no path."""
+  return dict(identity=identity(state), name=state["name"], complete=bool(state.get("complete")),
+              env_version=state.get("env_version"),
+              episodes={split: sum(len(s["seeds"]) for s in info["shards"]) for split, info in state["splits"].items()},
+              shards={split: len(info["shards"]) for split, info in state["splits"].items()})
+
+
+def read_record(path: str) -> Optional[Dict[str, Any]]:
+  """`record` of the dataset at `path` (its roboshape.json), or None when there is none there."""
+  state = read_state(path)
+  if state is None:
+    return None
+  try:
+    return record(state)
+  except (KeyError, TypeError) as e:
+    raise UserError(f"{os.path.join(path, STATE_FILE)} lacks its shard records ({type(e).__name__}: {e}): collect "
+                    "the dataset again into another --config.data.dir.") from None

@@ -340,15 +340,27 @@ def check_existing(config, workdir: str):
 
 
 def run(config, workdir: str) -> None:
-  """The collect stage: the dataset of config.task at `roboshape.data.dataset_path(config, workdir)`."""
+  """The collect stage: the dataset of config.task at `roboshape.data.dataset_path(config, workdir)`, its
+  identity then recorded in the run's <workdir>/dataset.json (`record_dataset`)."""
   path = data_lib.dataset_path(config, workdir)
   summary = config_summary(config)
   state = check_existing(config, workdir)
   if state is not None and state["complete"] and not rlds.shard_problems(path, state):
     _print_report(path, {"already_complete": True})
+    record_dataset(path, workdir)
     return
   from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
   spec = EnvSpec.from_config(config, level=LEVEL)
   with SimPool(spec, num_workers=int(config.sim.num_workers)) as pool:
     report = collect_dataset(pool, path, summary, split_targets(config))
   _print_report(path, report)
+  record_dataset(path, workdir)
+
+
+def record_dataset(path: str, workdir: str) -> str:
+  """Writes <workdir>/dataset.json, the identity of the dataset at `path` (roboshape.data.record), which the run's
+  later stages train on and its published cell carries; returns its path."""
+  out = rundir.dataset_record(workdir)
+  os.makedirs(workdir, exist_ok=True)
+  fileio.atomic_write_json(out, data_lib.record(rlds.load_state(path)), indent=1)
+  return out

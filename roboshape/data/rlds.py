@@ -172,17 +172,11 @@ def _write_records(path: str, records: Sequence[bytes]) -> None:
 
 
 def load_state(path: str) -> Optional[Dict[str, Any]]:
-  """roboshape.json of the dataset at `path`, or None when there is none."""
-  state_path = os.path.join(path, data_lib.STATE_FILE)
-  if not os.path.exists(state_path):
+  """roboshape.json of the dataset at `path` (roboshape.data.read_state), or None when there is none; a UserError
+  for another layout than this roboshape's."""
+  state = data_lib.read_state(path)
+  if state is None:
     return None
-  try:
-    with open(state_path) as f:
-      state = json.load(f)
-  except (OSError, ValueError) as e:
-    raise UserError(f"{state_path} is unreadable ({e}): the dataset's record is damaged. Copy it back from a "
-                    "backup if you have one; otherwise collect a new dataset into another --config.data.dir (or "
-                    f"move {path} away and collect again). It is left as it is.") from None
   if state.get("layout") != LAYOUT:
     raise UserError(f"{path} holds a dataset of layout {state.get('layout')!r}, this roboshape writes {LAYOUT!r}: "
                     "collect it again into another directory.")

@@ -8,6 +8,9 @@ stage wiring, the grid, the feature cache, closed-loop evaluation and the report
 registered name. Importing this package is cheap: each `build` and `check` imports what it needs (JAX, torch, the
 model) only when called.
 
+A grid's columns are registered encoders, alone or with options beyond the paper that set config fields
+("savi+proprio": policy.proprio=True); each option is registered once in roboshape/encoders/columns.py.
+
 Adding an encoder (README.md, "Adding an encoder"): a module here with its `Kind`, its name in `_MODULES`, and
 `configs/{push,pick,place}_<name>.py` (a module elsewhere registers one when it is imported:
 tests/toy_encoder.py).

@@ -27,12 +27,13 @@ def check(config) -> None:
 
 
 def load_encoder(workdir: str, config=None):
-  """The AE trained in `workdir` (its newest checkpoint that restores), frozen: one token per frame, its latent
-  [B, 1, D]; `config`: the workdir's config.json when None."""
+  """The AE trained in `workdir` (its newest checkpoint that restores), or in the workdir its
+  pretrain.from_workdir names (savi_encoder.pretrained_source), frozen: one token per frame, its latent [B, 1, D];
+  `config`: the workdir's config.json when None."""
   # pylint: disable=import-outside-toplevel
   from roboshape.models import ae
   from roboshape.models.encoder import FrozenEncoder
-  config = config or rundir.load_config(workdir)
+  workdir, config = savi_encoder.pretrained_source(config or rundir.load_config(workdir), workdir)
   model = ae.model_from_config(config)
   params, step, directory = savi_encoder.restore(config, workdir, model, rundir.ae_dir(workdir), "AE")
   return FrozenEncoder(

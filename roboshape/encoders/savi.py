@@ -7,17 +7,20 @@ frozen from its checkpoint's params (no optimizer state is read).
 With pretrain.train_seeds = (s1, s2, ...) the SAVi served is the seed the pretrain stage selected
 (<workdir>/savi/selected.json, roboshape/train/pretrain.py), from <workdir>/savi/seed_<s>/checkpoints; the encoder's
 identity names that folder, so a new selection changes it and the feature caches and policies made with another
-seed are refused. With seeds = () it is <workdir>/savi/checkpoints.
+seed are refused. With seeds = () it is <workdir>/savi/checkpoints. A run with pretrain.from_workdir set serves the
+SAVi of the run that workdir holds (`pretrained_source`), as the AE does (roboshape/encoders/ae.py).
 
 The ranges of the savi section are declared here (RANGES, and `frame_ranges` for the frame encoder and decoder the
 AE shares) and checked by `check`, with SAVi's modes and its fit to the frames (roboshape/models/savi.py).
 """
 import functools
+import json
 import os
 
 from roboshape import encoders
 from roboshape import ranges
 from roboshape import rundir
+from roboshape.encoders import columns
 from roboshape.errors import UserError
 
 
@@ -95,8 +98,46 @@ def trained_dir(config, workdir: str, stage_dir: str, title: str) -> str:
 
 def launch_command(config, workdir: str) -> str:
   """The command that runs `config`'s experiment on `workdir`, with its variant (the run identity check refuses
-  another variant's run on that workdir)."""
-  return f"python launch.py --config=configs/{config.name}.py:{config.variant} --workdir={workdir}"
+  another variant's run on that workdir) and its column's options (roboshape/encoders/columns.py)."""
+  return (f"python launch.py --config=configs/{config.task}_{config.encoder}.py:{config.variant}"
+          f"{columns.flags(columns.of_config(config))} --workdir={workdir}")
+
+
+# What a pretrain stage reads, SAVi's and the AE's alike: two runs that agree on these pretrain the same model.
+PRETRAINING_READS = ("encoder", "seed", "env", "data", "pretrain", "savi", "ae")
+
+
+def pretrained_source(config, workdir: str):
+  """(workdir, config) of the run whose pretrain stage trained this run's encoder: this run, or the run its
+  pretrain.from_workdir names (rundir.pretrained_workdir) with that run's config.json. That config must agree with
+  this one on PRETRAINING_READS (the dataset by its folder, pretrain.from_workdir aside), else a UserError: a
+  policy is never trained on an encoder pretrained otherwise than its config says."""
+  source = rundir.pretrained_workdir(config, workdir)
+  if source == workdir:
+    return workdir, config
+  if not os.path.exists(rundir.config_path(source)):
+    raise UserError(f"pretrain.from_workdir={source!r} holds no run yet ({rundir.config_path(source)} is missing): "
+                    f"run that run's pretrain stage first (a grid runs it before this one), or set "
+                    "pretrain.from_workdir=\"\" to pretrain in this run's workdir.")
+  theirs = rundir.load_config(source)
+  differ = [key for key in PRETRAINING_READS if _pretraining_view(config, workdir, key)
+            != _pretraining_view(theirs, source, key)]
+  if differ:
+    raise UserError(f"pretrain.from_workdir={source!r} was pretrained with other settings ({', '.join(differ)} "
+                    f"differ from this run's): set pretrain.from_workdir=\"\" to pretrain in this run's workdir, "
+                    "or point it at a run pretrained as this config says.")
+  return source, theirs
+
+
+def _pretraining_view(config, workdir: str, key: str):
+  """config[key] as JSON data, the dataset's folder resolved (rundir.data_root) and pretrain.from_workdir left out."""
+  value = config.get(key)
+  value = json.loads(json.dumps(value.to_dict() if hasattr(value, "to_dict") else value))
+  if key == "data":
+    value["dir"] = os.path.abspath(rundir.data_root(config, workdir))
+  if key == "pretrain":
+    value.pop("from_workdir", None)
+  return value
 
 
 def restore(config, workdir: str, model, stage_dir: str, title: str):
@@ -116,7 +157,7 @@ def load(workdir: str, config=None):
   """(model, params, step) of the SAVi trained in `workdir` (its newest checkpoint that restores); `config`: the
   workdir's config.json when None."""
   from roboshape.models import savi  # pylint: disable=import-outside-toplevel
-  config = config or rundir.load_config(workdir)
+  workdir, config = pretrained_source(config or rundir.load_config(workdir), workdir)
   model = savi.model_from_config(config)
   params, step, _ = restore(config, workdir, model, rundir.savi_dir(workdir), "SAVi")
   return model, params, step
@@ -132,7 +173,7 @@ def load_encoder(workdir: str, config=None):
   import jax.numpy as jnp
   from roboshape.models import savi
   from roboshape.models.encoder import FrozenEncoder
-  config = config or rundir.load_config(workdir)
+  workdir, config = pretrained_source(config or rundir.load_config(workdir), workdir)
   model = savi.model_from_config(config)
   params, step, directory = restore(config, workdir, model, rundir.savi_dir(workdir), "SAVi")
   init = savi.initial_slots(model, params, 1)[0]

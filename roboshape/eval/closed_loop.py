@@ -27,6 +27,8 @@ table.md, table.tex, success_by_level.png, videos/<level>_s<seed>.{mp4,gif} for 
 SAVi's reconstruction and every slot beside it (roboshape.eval.videos.SaviSlotVideo, the paper's Figure 8).
 Videos are written under a temporary name and renamed, so a kill leaves none half-written; a resumed evaluation
 re-runs the logged rollouts whose planned video is missing, to record it (their logged results stand).
+Each rollout's `encoder` field, and the tables', is the run's column (roboshape/encoders/columns.py): its encoder
+with the options its config turns on ("savi+proprio"), so runs that differ by an option are told apart.
 """
 import collections
 import dataclasses
@@ -43,6 +45,7 @@ from tqdm import tqdm
 from roboshape import envs
 from roboshape import fileio
 from roboshape import rundir
+from roboshape.encoders import columns
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
 from roboshape.eval import plots
@@ -211,26 +214,28 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
   out_dir = rundir.eval_dir(workdir)
   os.makedirs(out_dir, exist_ok=True)
   levels = [l for l in LEVEL_NAMES if l in tuple(config.eval.levels)]
-  records = sorted(records, key=lambda r: (levels.index(r["level"]) if r["level"] in levels else 99,
-                                           r["seed_index"], r["rollout"]))
+  column = columns.of_config(config)     # rollouts logged before runs were labelled by column get it too
+  records = sorted((dict(r, encoder=column) for r in records),
+                   key=lambda r: (levels.index(r["level"]) if r["level"] in levels else 99, r["seed_index"],
+                                  r["rollout"]))
   summary = results_lib.summarize(records)
   paths = dict(json=os.path.join(out_dir, rundir.RESULTS_FILE), csv=os.path.join(out_dir, rundir.RESULTS_CSV),
                md=os.path.join(out_dir, "table.md"), tex=os.path.join(out_dir, "table.tex"),
                png=os.path.join(out_dir, "success_by_level.png"))
   fileio.atomic_write_json(paths["json"], dict(
-      task=config.task, encoder=config.encoder, levels=levels, num_seeds=config.eval.num_seeds,
+      task=config.task, encoder=column, levels=levels, num_seeds=config.eval.num_seeds,
       rollouts_per_seed=config.eval.rollouts_per_seed,
       seed_scheme=f"env seed = {config.eval.seed_offset} + seed_index * {SEED_STRIDE} + rollout",
       summary=summary, rollouts=[{k: v for k, v in r.items()} for r in records]), indent=1)
   results_lib.write_csv(paths["csv"], records)
   cells = tables.cells_from_summary(summary, config.task)
-  encoders = [config.encoder]
+  encoders = [column]
   fileio.atomic_write_text(paths["md"], (
-      f"### {config.task}: success rate, {tables.encoder_name(config.encoder)}\n\n"
+      f"### {config.task}: success rate, {tables.encoder_name(column)}\n\n"
       + tables.render_markdown(cells, encoders, levels)
       + "\n" + notes(summary, config.eval.num_seeds, config.eval.rollouts_per_seed) + "\n"))
   fileio.atomic_write_text(paths["tex"], tables.render_latex(
-      cells, encoders, levels=levels, label=f"tab:{config.task}_{config.encoder}",
+      cells, encoders, levels=levels, label=f"tab:{config.task}_{column}",
       caption=f"Success rate of \\textit{{{config.task}}} over the generalization scenarios "
               f"(mean $\\pm$ std over {_over(summary, config)})"))
   plots.overall_bar_chart(summary, paths["png"], levels=levels,
@@ -240,7 +245,7 @@ def write_outputs(config, workdir: str, records: Sequence[Dict]) -> Dict[str, st
   if counts:
     paths["milestones"] = os.path.join(out_dir, "milestones.md")
     fileio.atomic_write_text(paths["milestones"], (
-        f"### {config.task}: how far the rollouts got, {tables.encoder_name(config.encoder)}\n\n"
+        f"### {config.task}: how far the rollouts got, {tables.encoder_name(column)}\n\n"
         + tables.render_milestones(counts, names)
         + f"\nShare of rollouts that reached each milestone at some step (pooled over seeds), then the same over the "
           f"failed rollouts alone; milestones of {config.task}: {', '.join(names)} (roboshape/envs/tasks.py).\n"))
@@ -382,7 +387,7 @@ class Recorder:
   def __init__(self, config, log: results_lib.ResultLog, video_dir: str,
                slot_video: Optional[Callable[[np.ndarray], np.ndarray]] = None, train_seed=None):
     self.log, self.video_dir, self.slot_video = log, video_dir, slot_video
-    self.fields = dict(task=config.task, encoder=config.encoder,
+    self.fields = dict(task=config.task, encoder=columns.of_config(config),
                        **({} if train_seed is None else dict(train_seed=int(train_seed))))
     self.fps = config.eval.video_fps
 

@@ -1,42 +1,56 @@
 """Copies a finished run's results out of its workdir, so they survive the machine (e.g. into results/small/).
 
-  publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<encoder>/
+  publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<column>/
+  check_datasets({(task, column): folder})   # UserError when cells of one task name different datasets
+
+The folder is named after the run's column (roboshape/encoders/columns.py): its encoder, with its options
+("push_savi+proprio").
 
 A grid config with `grid.publish` set (configs/reproduce.py:small: "results/small") publishes each run as soon as
 its evaluation is complete. What is copied, under fixed names (files the run does not have are left out):
 
   config.json                      the config that ran
+  dataset.json                     the identity of the dataset it was trained on (roboshape.data.record: a hash
+                                   over its shards' checksums, the same for every copy of the dataset)
   stages.json                      each stage's wall time (roboshape.status reads it)
   results.csv, table.md, table.tex, success_by_level.png, milestones.md   eval/: every rollout, the tables, the
                                                                           plot, how far the rollouts got
   policy_val_metrics.json/.png     the policy's validation curve (with policy.train_seeds, one per seed s:
                                    policy_seed_<s>_val_metrics.json/.png)
-  <encoder>_val_metrics.json/.png  the encoder's pretraining curve (savi, ae), and its seed selection files
+  <encoder>_val_metrics.json/.png  the encoder's pretraining curve (savi, ae), and its seed selection files (from
+                                   the run that pretrained it: pretrain.from_workdir)
   videos/*.mp4                     the rollout videos the evaluation recorded (a few per level)
 
 Files of an earlier publication of the same run that this one does not replace are removed, so the folder always
 holds one run; a README.md written there by hand is kept.
 """
 import glob
+import json
 import os
 import shutil
-from typing import List
+from typing import Dict, List, Mapping, Tuple
 
+from roboshape import data as data_lib
+from roboshape import fileio
 from roboshape import rundir
+from roboshape.encoders import columns
 from roboshape.errors import UserError
 
 KEPT = ("README.md",)
+DATASET = rundir.DATASET_FILE
 EVAL_FILES = (rundir.RESULTS_CSV, "table.md", "table.tex", "success_by_level.png", "milestones.md")
 
 
 def planned(config, workdir: str) -> List[tuple]:
-  """(source path, name in the published folder) of every file `publish` copies from `workdir`."""
-  pairs = [(rundir.config_path(workdir), "config.json"), (rundir.stage_log_path(workdir), "stages.json")]
+  """(source path, name in the published folder) of every file `publish` copies from `workdir` (and from the
+  workdir whose pretrain stage trained its encoder)."""
+  pairs = [(rundir.config_path(workdir), "config.json"), (rundir.stage_log_path(workdir), "stages.json"),
+           (rundir.dataset_record(workdir), DATASET)]
   pairs += [(os.path.join(rundir.eval_dir(workdir), name), name) for name in EVAL_FILES]
   for seed in rundir.train_seeds(config):
     policy, name = rundir.policy_dir(workdir, seed), "policy" if seed is None else f"policy_seed_{seed}"
     pairs += [(os.path.join(policy, f"val_metrics{ext}"), f"{name}_val_metrics{ext}") for ext in (".json", ".png")]
-  encoder_dir = rundir.pretrain_dir(workdir, config.encoder)
+  encoder_dir = rundir.pretrain_dir(rundir.pretrained_workdir(config, workdir), config.encoder)
   for path in sorted(glob.glob(os.path.join(encoder_dir, "*.json")) + glob.glob(os.path.join(encoder_dir, "*.png"))):
     pairs.append((path, f"{config.encoder}_{os.path.basename(path)}"))
   for path in sorted(glob.glob(os.path.join(rundir.videos_dir(workdir), "*.mp4"))):
@@ -45,15 +59,20 @@ def planned(config, workdir: str) -> List[tuple]:
 
 
 def publish(config, workdir: str, dest_root: str) -> str:
-  """Copies the results of the run in `workdir` to <dest_root>/<task>_<encoder>/; returns that folder.
+  """Copies the results of the run in `workdir` to <dest_root>/<task>_<column>/; returns that folder. A run without
+  a dataset.json of its own (its collect stage ran before runs recorded one) gets one made from its dataset's
+  roboshape.json where that dataset still is.
 
   Raises UserError when the run has no evaluation results yet (nothing is copied then)."""
   if not os.path.exists(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE)):
     raise UserError(f"{workdir} has no evaluation results ({rundir.RESULTS_FILE}) to publish: run its evaluate "
                     "stage first.")
-  dest = os.path.join(dest_root, f"{config.task}_{config.encoder}")
+  dest = os.path.join(dest_root, f"{config.task}_{columns.of_config(config)}")
   pairs = planned(config, workdir)
   names = {name for _, name in pairs}
+  record = None if DATASET in names else data_lib.read_record(data_lib.dataset_path(config, workdir))
+  if record is not None:
+    names.add(DATASET)
   if os.path.isdir(dest):
     for folder, _, files in os.walk(dest):
       for name in files:
@@ -65,4 +84,31 @@ def publish(config, workdir: str, dest_root: str) -> str:
     os.makedirs(os.path.dirname(target), exist_ok=True)
     shutil.copyfile(src, target + ".partial")
     os.replace(target + ".partial", target)
+  if record is not None:
+    fileio.atomic_write_json(os.path.join(dest, DATASET), record)
   return dest
+
+
+def check_datasets(cells: Mapping[Tuple[str, str], str]) -> None:
+  """Raises UserError, one line naming the cells, when published cells of one task ({(task, column): folder})
+  record different datasets (their dataset.json identities): such cells were trained on other demos and do not
+  belong in one table. A cell without a dataset.json (published before runs recorded one) is not compared."""
+  by_task: Dict[str, Dict[str, List[str]]] = {}
+  for (task, _), folder in sorted(cells.items()):
+    path = os.path.join(folder, DATASET)
+    if not os.path.isfile(path):
+      continue
+    try:
+      with open(path, encoding="utf-8") as f:
+        identity = json.load(f)["identity"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+      raise UserError(f"{path} is damaged ({type(e).__name__}): publish that run again from its workdir, or "
+                      "restore the file from git.") from None
+    by_task.setdefault(task, {}).setdefault(identity, []).append(os.path.normpath(folder))
+  for task, found in by_task.items():
+    if len(found) > 1:
+      groups = "; ".join(f"{', '.join(os.path.basename(f) for f in folders)} on dataset {identity}"
+                         for identity, folders in sorted(found.items(), key=lambda kv: (-len(kv[1]), kv[0])))
+      root = os.path.dirname(next(iter(found.values()))[0])
+      raise UserError(f"the {task} cells were trained on different datasets ({groups}): publish every cell of a "
+                      f"task from runs on one dataset (one grid), or move the odd cells out of {root}.")

@@ -31,6 +31,7 @@ from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
 from roboshape.eval import claims
 from roboshape.eval import plots
+from roboshape.eval import publish
 from roboshape.eval import readme
 from roboshape.eval import results as results_lib
 from roboshape.eval import tables
@@ -122,6 +123,7 @@ def build_published_report(root: str) -> Dict[str, str]:
   if not found:
     raise UserError(f"{root} holds no published run (<task>_<encoder>/{rundir.RESULTS_CSV}): publish one first "
                     "(configs/reproduce.py with grid.publish, or roboshape.eval.publish).")
+  publish.check_datasets({key: run["folder"] for key, run in found.items()})   # one dataset per task, or nothing
   for run in found.values():       # every run read back before any README is rewritten
     readme.write(run["folder"], run, published_config(run["folder"]))
   tasks = [t for t in TASKS if t in {t for t, _ in found}] + sorted({t for t, _ in found} - set(TASKS))

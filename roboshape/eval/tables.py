@@ -11,7 +11,7 @@ or not evaluated at that level) prints as "-".
 """
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
-from roboshape import encoders
+from roboshape.encoders import columns
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
 
@@ -23,9 +23,10 @@ _ROW_NAMES_TEX = {"train": r"$\emptyset$"}
 
 
 def encoder_name(encoder: str) -> str:
-  """The display name of a registered encoder ("savi" -> "SAVi", its Kind's title); others as they are."""
+  """The display name of a column, a registered encoder alone or with options (roboshape/encoders/columns.py:
+  "savi" -> "SAVi", its Kind's title; "savi+proprio" -> "SAVi+proprio"); others as they are."""
   try:
-    return encoders.get(encoder).title
+    return columns.title(encoder)
   except UserError:
     return encoder
 
@@ -36,10 +37,13 @@ def level_name(level: str) -> str:
 
 
 def sort_encoders(encoders: Sequence[str]) -> Tuple[str, ...]:
-  """Encoders in the paper's column order (DINO, R3M, SAVi, with AE before SAVi and the controls after it), others
-  after them in the given order."""
-  known = [e for e in ENCODER_ORDER if e in encoders]
-  return tuple(known + [e for e in encoders if e not in ENCODER_ORDER])
+  """Columns in the paper's order (DINO, R3M, SAVi, with AE before SAVi and the controls after it), each encoder's
+  columns with options right after its plain one in the given order, others after them in the given order."""
+  def base(name: str) -> str:
+    return name.split(columns.SEPARATOR)[0]
+  known = sorted((e for e in encoders if base(e) in ENCODER_ORDER),
+                 key=lambda e: (ENCODER_ORDER.index(base(e)), e != base(e), list(encoders).index(e)))
+  return tuple(known + [e for e in encoders if base(e) not in ENCODER_ORDER])
 
 
 def _best(cells: Mapping, level: str, encoders: Sequence[str]) -> set:
