@@ -28,6 +28,7 @@ from roboshape import fileio
 from roboshape import rundir
 from roboshape.envs import TASKS
 from roboshape.envs.palettes import LEVEL_NAMES
+from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.eval import claims
 from roboshape.eval import plots
@@ -38,10 +39,11 @@ from roboshape.eval import tables
 
 
 def grid_runs(config, workdir: str) -> List[Tuple[str, str, str]]:
-  """(task, encoder, run workdir) of every run the config covers."""
+  """(task, column, run workdir) of every run the config covers (a single run's column: its encoder with the
+  options its config turns on, roboshape/encoders/columns.py)."""
   if "grid" in config:
     return [(t, e, rundir.grid_run_dir(workdir, t, e)) for t in config.grid.tasks for e in config.grid.encoders]
-  return [(config.task, config.encoder, workdir)]
+  return [(config.task, columns.of_config(config), workdir)]
 
 
 def load_run(task: str, encoder: str, run_dir: str) -> Dict:
