@@ -68,6 +68,17 @@ def _flatten(tree, prefix: str = "") -> Dict:
   return out
 
 
+def _unread_sections(encoder: str) -> set:
+  """The config sections only other encoders read (encoders.Kind.sections): a value there changes nothing in a run
+  of `encoder` (e.g. the ae section of an old SAVi run, copied from its savi section by rundir.upgrade_config)."""
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  own = {s.split(".")[0] for s in encoders.get(encoder).sections}
+  if "ae" in own:
+    own.add("savi")     # the AE's token width defaults to savi.slot_size (ae.latent_size=0)
+  every = {s.split(".")[0] for name in encoders.names() for s in encoders.get(name).sections}
+  return every - own
+
+
 def changed_fields(config: Dict, baseline: Optional[Dict] = None) -> str:
   """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults (a field added
   to the configs after the run was made is not among its config's, and is not a change; one removed since is
@@ -81,8 +92,10 @@ def changed_fields(config: Dict, baseline: Optional[Dict] = None) -> str:
              **{k: tuple(v) if isinstance(v, list) else v
                 for k, v in {**baseline.get("*", {}), **baseline.get(config["task"], {})}.items()}}
   ran = _flatten(config)
+  unread = _unread_sections(config["encoder"])
   keys = sorted(k for k in ran
-                if ran[k] != default.get(k) and not any(k == i or k.startswith(i + ".") for i in IGNORED))
+                if ran[k] != default.get(k) and k.split(".")[0] not in unread
+                and not any(k == i or k.startswith(i + ".") for i in IGNORED))
   return "; ".join(f"{k}={ran.get(k)!r}" for k in keys)
 
 

@@ -66,6 +66,17 @@ def test_a_removed_field_counts_as_changed_where_it_differs_from_the_default_it_
   assert study.probe_row(str(tmp_path / "plain"), "plain")["changed"] == "(none)"
 
 
+def test_a_field_of_a_section_only_other_encoders_read_is_no_change():
+  savi = common.get_config("push", "savi", "small").to_dict()
+  savi["ae"]["encoder"]["strides"] = [1, 1, 1, 1, 1]      # as rundir.upgrade_config copies an old run's savi section
+  savi["savi"]["encoder"]["strides"] = [1, 1, 1, 1, 1]
+  assert study.changed_fields(savi) == "savi.encoder.strides=(1, 1, 1, 1, 1)"
+  ae = common.get_config("push", "ae", "small").to_dict()
+  ae["savi"]["slot_size"] = 7                                 # the AE's token width when ae.latent_size=0
+  ae["state"]["withhold"] = ["cube_quat"]
+  assert study.changed_fields(ae) == "savi.slot_size=7"
+
+
 def test_a_studys_baseline_replaces_todays_defaults_where_it_names_a_field_the_tasks_entries_over_stars(tmp_path):
   _fake_run(str(tmp_path / "run"), **{"data.train_episodes": 200, "policy.train.steps": 15000})
   config = json.load(open(tmp_path / "run" / "config.json"))
