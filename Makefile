@@ -11,7 +11,7 @@ demo: setup
 	$(PY) launch.py --config=configs/reproduce.py:tiny --workdir=$(DEMO_WORKDIR)
 
 test: setup
-	JAX_PLATFORMS=cpu $(PY) -m pytest -q tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto tests
 
 clean-demo:
 	rm -rf $(DEMO_WORKDIR)

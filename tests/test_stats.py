@@ -179,7 +179,12 @@ def test_the_published_report_prints_intervals_comparisons_robustness_the_figure
   assert "| none | 0.80 [0.68, 0.93]† | 0.80 [0.68, 0.93]† | 0.50 [0.35, 0.65]† |" in md
   assert "| SAVi − AE | +0.00 [+0.00, +0.00]† | +0.70 [" in md and "| SAVi − Objects | +0.30 [" in md
   assert "| SAVi | 1.00 [1.00, 1.00]† | 0.62 [" in md and "mean over L1, L2 |" in md
-  assert md.count("\n| L3 |") == 1                      # the paper-layout table's row of "-"; no interval row
+  assert md.count("\n| L3 |") == 2                      # the table's row of "-" and the paper's; no interval row
+  # the paper's push table beside ours, and why its columns that have no cell here are absent
+  assert "| none | 0.00 ± 0.00 | **0.88** ± 0.07 | 0.69 ± 0.06 |" in md
+  assert ("- the paper's R3M column has no cell here (not in this report's runs; the grid skips a baseline whose "
+          "weights are absent).") in md
+  assert "- the paper's SAVi column has no cell here" not in md
   assert "| SAVi − AE |  |  | +0.62 [" in md           # (0.8 + 0.5) / 1.6 - (0.1 + 0.2) / 1.6
   assert "So this table supports claim 1 on push." in md and "So this table supports claim 2 on push." in md
   assert os.path.getsize(root / "report" / "success_by_level.png") > 0

@@ -24,6 +24,7 @@ import os
 import sys
 from typing import Dict, List, Tuple
 
+from roboshape import encoders as encoders_lib
 from roboshape import fileio
 from roboshape import rundir
 from roboshape.envs import TASKS
@@ -31,6 +32,7 @@ from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.eval import claims
+from roboshape.eval import paper
 from roboshape.eval import plots
 from roboshape.eval import publish
 from roboshape.eval import readme
@@ -184,6 +186,16 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
         if crashed:
           md.append(f"- {tables.encoder_name(encoder)} on {task}: {crashed} rollout(s) lost to simulator worker "
                     "crashes, left out of the rates.")
+    if task in paper.TABLES:
+      md += ["", f"The paper's {task} table ({paper.SOURCE[task]}):", "",
+             tables.render_markdown(paper.TABLES[task], paper.ENCODERS, levels)]
+      for encoder in paper.ENCODERS:
+        r = loaded.get((task, encoder))
+        if r is None or "skipped" in r:
+          why = r["skipped"] if r is not None else (
+              "not in this report's runs; the grid skips a baseline whose weights are absent"
+              if encoders_lib.get(encoder).baseline else "not in this report's runs")
+          md.append(f"- the paper's {tables.encoder_name(encoder)} column has no cell here ({why}).")
     md.append("")
     if any(t == task for t, _ in answer.cells):
       md += [f"### {task}: success with its 95% interval", "", claims.success_table(answer, task, encoders)]
