@@ -136,15 +136,17 @@ def upgrade_config(data: dict) -> dict:
   _put(data, "pretrain.train.clip_norm_of", "mean")
   if "ae" in data:
     for field in _AE_FROM_SAVI:
-      value = _get(data["savi"], field)
+      value = get_field(data["savi"], field)
       if value is not None:
         _put(data["ae"], field, value)
   return data
 
 
-def _get(tree: dict, dotted: str):
+def get_field(tree, dotted: str):
+  """The field at `dotted` of a config (a ConfigDict or a config.json's dict), or None where it is absent (e.g. a
+  config.json written before the field existed)."""
   for key in dotted.split("."):
-    if not isinstance(tree, dict) or key not in tree:
+    if not hasattr(tree, "keys") or key not in tree:
       return None
     tree = tree[key]
   return tree

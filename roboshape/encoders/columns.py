@@ -19,6 +19,7 @@ import dataclasses
 from typing import Any, Dict, Tuple
 
 from roboshape import encoders
+from roboshape import rundir
 from roboshape.errors import UserError
 
 SEPARATOR = "+"
@@ -74,19 +75,10 @@ def apply(config, column: str) -> None:
     node[leaf] = value
 
 
-def _field(config, dotted: str):
-  node = config
-  for key in dotted.split("."):
-    if not hasattr(node, "keys") or key not in node:
-      return None          # a config.json written before the field existed: the option was off
-    node = node[key]
-  return node
-
-
 def of_config(config) -> str:
   """The column `config` (a ConfigDict, or a config.json's dict) is: its encoder, then each option whose fields
   all hold the values the option sets."""
-  on = [o.name for o in OPTIONS.values() if all(_field(config, f) == v for f, v in o.fields)]
+  on = [o.name for o in OPTIONS.values() if all(rundir.get_field(config, f) == v for f, v in o.fields)]
   return SEPARATOR.join([config["encoder"]] + on)
 
 
