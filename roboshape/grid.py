@@ -16,8 +16,9 @@ def grid_configs(config, workdir: str):
 
   Each run is the grid's config with its task set and its column's encoder and option fields (columns.apply), in
   rundir.grid_run_dir (<workdir>/<task>_<column>/), reading the task's dataset from rundir.grid_data_dir
-  (<data_root>/<task>, shared by the task's runs; collected once). Within a task, the plain columns of encoders
-  with a pretraining stage (SAVi, AE) come first, then their columns with options, then the others. A column whose
+  (<data_root>/<task>, shared by the task's runs; collected once). The plain columns of every task come first, task
+  by task (the paper's table: a grid stopped part way has its cells before any column beyond it), within a task
+  those of encoders with a pretraining stage (SAVi, AE) first; then the columns with options, task by task. A column whose
   options set policy fields alone (columns.policy_only) serves the encoder its plain column's run pretrained when
   the grid has that column (pretrain.from_workdir, and no pretrain stage of its own): the policy fields change
   nothing pretraining reads, so the two runs would pretrain the same model. `pretrained_from` gives these pairs.
@@ -32,29 +33,30 @@ def grid_configs(config, workdir: str):
 
   def order(column):
     encoder = columns.parse(column)[0]
-    return not encoders.get(encoder).pretrain, column != encoder
+    return not encoders.get(encoder).pretrain
 
-  for task in config.grid.tasks:
-    for column in sorted(names, key=order):
-      sub = ml_collections.ConfigDict(base)
-      sub.task, sub.name = task, f"{task}_{column}"
-      columns.apply(sub, column)
-      pretrains = encoders.get(sub.encoder).pretrain
-      if pretrains and sub.encoder in names and column != sub.encoder and columns.policy_only(column):
-        sub.pretrain.from_workdir = rundir.grid_run_dir(workdir, task, sub.encoder)
-        pretrains = False
-      sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
-      sub.data.dir = rundir.grid_data_dir(config, workdir, task)
-      seeds = config.grid.get("train_seeds", {}).get(task)
-      if seeds:
-        sub.policy.train_seeds = tuple(seeds)
-      control = config.grid.get("task_control", {}).get(task)
-      if control:
-        sub.policy.eval.update(control.to_dict())
-      train = config.grid.get("task_train", {}).get(task)
-      if train:
-        sub.policy.train.update(train.to_dict())
-      yield task, column, sub, rundir.grid_run_dir(workdir, task, column)
+  plain = sorted((c for c in names if columns.parse(c)[0] == c), key=order)
+  for task, column in [(t, c) for t in config.grid.tasks for c in plain] + [
+      (t, c) for t in config.grid.tasks for c in sorted((c for c in names if c not in plain), key=order)]:
+    sub = ml_collections.ConfigDict(base)
+    sub.task, sub.name = task, f"{task}_{column}"
+    columns.apply(sub, column)
+    pretrains = encoders.get(sub.encoder).pretrain
+    if pretrains and sub.encoder in names and column != sub.encoder and columns.policy_only(column):
+      sub.pretrain.from_workdir = rundir.grid_run_dir(workdir, task, sub.encoder)
+      pretrains = False
+    sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
+    sub.data.dir = rundir.grid_data_dir(config, workdir, task)
+    seeds = config.grid.get("train_seeds", {}).get(task)
+    if seeds:
+      sub.policy.train_seeds = tuple(seeds)
+    control = config.grid.get("task_control", {}).get(task)
+    if control:
+      sub.policy.eval.update(control.to_dict())
+    train = config.grid.get("task_train", {}).get(task)
+    if train:
+      sub.policy.train.update(train.to_dict())
+    yield task, column, sub, rundir.grid_run_dir(workdir, task, column)
 
 
 def pretrained_from(runs) -> dict:

@@ -278,11 +278,14 @@ def stage_log_path(workdir: str) -> str:
 
 
 def read_stage_log(workdir: str, strict: bool = False) -> dict:
-  """{stage: {state: "running" | "done", pid, started, finished, seconds}} of a run ({} when none ran yet).
+  """{stage: {state: "running" | "done", pid, started, finished, seconds, core_seconds, cores}} of a run ({} when
+  none ran yet).
 
-  `seconds` is the wall time of the stage's finished attempts, summed over resumes. A damaged log reads as {} (a
-  run starts it afresh: it records times, not results), or with `strict` (the tools that report it) is a UserError
-  naming the file."""
+  `seconds` is the wall time of the stage's attempts, summed over resumes; `core_seconds` the same, each attempt's
+  wall time times the cores it held (`cores`: its process's CPU affinity, so a grid lane's one core, a collection's
+  whole machine). An attempt that never finished (killed with its session) counts up to its last beat
+  (`stage_clock`) once the next attempt starts. A damaged log reads as {} (a run starts it afresh: it records
+  times, not results), or with `strict` (the tools that report it) is a UserError naming the file."""
   path = stage_log_path(workdir)
   if not os.path.exists(path):
     return {}
@@ -299,20 +302,85 @@ def read_stage_log(workdir: str, strict: bool = False) -> dict:
   return {}
 
 
+def core_seconds(entry: dict) -> float:
+  """A stage log entry's core-seconds; an entry logged before cores were recorded counts one core."""
+  return float(entry.get("core_seconds", entry.get("seconds", 0.0)))
+
+
+def _held_cores() -> int:
+  return len(os.sched_getaffinity(0))
+
+
+def _add_time(entry: dict, seconds: float, cores: int) -> None:
+  entry["core_seconds"] = round(core_seconds(entry) + seconds * cores, 1)
+  entry["seconds"] = round(float(entry.get("seconds", 0.0)) + seconds, 1)
+
+
 def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> None:
-  """Notes in the stage log that `stage` is now "running" (in this process) or "done" after `seconds` more."""
+  """Notes in the stage log that `stage` is now "running" (in this process) or "done" after `seconds` more.
+
+  Starting an attempt first adds the time of the one before it when that one never finished: its wall time up to
+  its last beat (`beat_stage`)."""
   import datetime  # pylint: disable=import-outside-toplevel
+  import time  # pylint: disable=import-outside-toplevel
   log = read_stage_log(workdir)
   entry = dict(log.get(stage, {}))
   now = datetime.datetime.now().isoformat(timespec="seconds")
   if state == "running":
-    entry.update(state="running", pid=os.getpid(), started=now)
+    if entry.get("state") == "running" and "beat" in entry and "attempt" in entry:
+      _add_time(entry, max(0.0, float(entry["beat"]) - float(entry["attempt"])), int(entry.get("cores", 1)))
+    clock = time.time()
+    entry.update(state="running", pid=os.getpid(), started=now, cores=_held_cores(), attempt=clock, beat=clock)
   else:
-    entry.update(state="done", finished=now, seconds=round(float(entry.get("seconds", 0.0)) + seconds, 1))
-    entry.pop("pid", None)
+    _add_time(entry, seconds, int(entry.get("cores", _held_cores())))
+    entry.update(state="done", finished=now)
+    for key in ("pid", "attempt", "beat"):
+      entry.pop(key, None)
   log[stage] = entry
   os.makedirs(workdir, exist_ok=True)
   fileio.atomic_write_json(stage_log_path(workdir), log)
+
+
+def beat_stage(workdir: str, stage: str) -> None:
+  """Notes that this process's attempt at `stage` is still running now (what a killed attempt is counted up to)."""
+  import time  # pylint: disable=import-outside-toplevel
+  log = read_stage_log(workdir)
+  entry = log.get(stage)
+  if isinstance(entry, dict) and entry.get("state") == "running" and entry.get("pid") == os.getpid():
+    entry["beat"] = time.time()
+    fileio.atomic_write_json(stage_log_path(workdir), log)
+
+
+@contextlib.contextmanager
+def stage_clock(workdir: str, stage: str, every: float = 60.0):
+  """Logs one attempt at `stage` around the block: "running" at its start, a beat every `every` seconds from a
+  background thread (so a killed attempt's time is not lost), a last beat when the block raises (an interrupted
+  attempt; the next one adds its time), "done" with its wall time when it ends well."""
+  import threading  # pylint: disable=import-outside-toplevel
+  import time  # pylint: disable=import-outside-toplevel
+  record_stage(workdir, stage, "running")
+  start, stop = time.time(), threading.Event()
+
+  def beat():
+    while not stop.wait(every):
+      try:
+        beat_stage(workdir, stage)
+      except OSError:       # a full disk: the stage itself meets it and says so
+        pass
+
+  thread = threading.Thread(target=beat, name=f"stage-clock-{stage}", daemon=True)
+  thread.start()
+  try:
+    yield
+  except BaseException:
+    stop.set()
+    thread.join()
+    with contextlib.suppress(OSError):
+      beat_stage(workdir, stage)
+    raise
+  stop.set()
+  thread.join()
+  record_stage(workdir, stage, "done", time.time() - start)
 
 
 # ----------------------------------------------------------------------------------------------------------------

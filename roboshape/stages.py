@@ -241,9 +241,8 @@ def run(config, workdir: str) -> None:
       print(f"[roboshape] stage {name} -> {workdir}", flush=True)
       start = time.time()
       with disk_full_is_one_line(f"the {name} stage", workdir):
-        rundir.record_stage(workdir, name, "running")
-        runner(workdir)
-        rundir.record_stage(workdir, name, "done", time.time() - start)
+        with rundir.stage_clock(workdir, name):
+          runner(workdir)
       print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)
 
 

@@ -26,9 +26,9 @@ def _alive(pid) -> bool:
 
 
 def run_status(stages, run_dir: str) -> Dict:
-  """{state, stages: {stage: seconds or state}, seconds} of one run whose config runs `stages`."""
+  """{state, stages: {stage: seconds or state}, seconds, core_hours} of one run whose config runs `stages`."""
   if os.path.exists(os.path.join(run_dir, rundir.SKIPPED_FILE)):
-    return dict(state="skipped", stages={}, seconds=0.0)
+    return dict(state="skipped", stages={}, seconds=0.0, core_hours=0.0)
   log = rundir.read_stage_log(run_dir, strict=True)
   per_stage, states = {}, []
   for stage in stages:
@@ -49,8 +49,9 @@ def run_status(stages, run_dir: str) -> Dict:
     state = "stopped"
   else:
     state = "pending"
-  seconds = sum(float(entry.get("seconds", 0.0)) for entry in log.values() if isinstance(entry, dict))
-  return dict(state=state, stages=per_stage, seconds=seconds)
+  entries = [entry for entry in log.values() if isinstance(entry, dict)]
+  return dict(state=state, stages=per_stage, seconds=sum(float(e.get("seconds", 0.0)) for e in entries),
+              core_hours=sum(rundir.core_seconds(e) for e in entries) / 3600)
 
 
 def workdir_status(workdir: str) -> List[Dict]:
@@ -72,14 +73,15 @@ def _duration(seconds) -> str:
 
 
 def render(rows: List[Dict]) -> str:
-  """A markdown table: one line per run, its state, each stage's wall time (or state) and the total."""
+  """A markdown table: one line per run, its state, each stage's wall time (or state), the total wall time and the
+  core-hours (rundir.read_stage_log: each attempt's wall time times the cores it held)."""
   stages = [s for s in rundir.STAGES if any(s in r["stages"] for r in rows)]
-  lines = ["| task | encoder | state | " + " | ".join(stages) + " | total |",
-           "| --- | --- | --- | " + " | ".join("---" for _ in stages) + " | --- |"]
+  lines = ["| task | encoder | state | " + " | ".join(stages) + " | total | core-hours |",
+           "| --- | --- | --- | " + " | ".join("---" for _ in stages) + " | --- | --- |"]
   for r in rows:
     cells = [_duration(r["stages"][s]) if s in r["stages"] else "" for s in stages]
     lines.append(f"| {r['task']} | {r['encoder']} | {r['state']} | " + " | ".join(cells)
-                 + f" | {_duration(r['seconds'])} |")
+                 + f" | {_duration(r['seconds'])} | {r['core_hours']:.2f} |")
   counts = {}
   for r in rows:
     counts[r["state"]] = counts.get(r["state"], 0) + 1

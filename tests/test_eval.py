@@ -639,8 +639,13 @@ def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
     assert sub.pretrain.from_workdir == f"/w/{task}_{plain}" and "pretrain" not in sub.stages
   plain_savi = next(sub for task, column, sub, _ in runs if (task, column) == ("push", "savi"))
   assert plain_savi.pretrain.from_workdir == "" and "pretrain" in plain_savi.stages and not plain_savi.policy.proprio
-  # within a task the plain SAVi and AE come first, then their +proprio columns, which wait for them in lanes
-  assert [c for t, c, _, _ in runs if t == "pick"][:4] == ["savi", "ae", "savi+proprio", "ae+proprio"]
+  # the plain columns of every task first (SAVi and the AE first within a task), then the +proprio columns, each
+  # waiting in lanes for the plain run whose encoder it serves
+  order = [(t, c) for t, c, _, _ in runs]
+  plain = [c for c in small.grid.encoders if "+" not in c]
+  assert order[:len(plain)] == [("push", c) for c in plain] and plain[:2] == ["savi", "ae"]
+  assert order[len(plain):2 * len(plain)] == [("pick", c) for c in plain]
+  assert [c for _, c in order[-6:]] == ["savi+proprio", "ae+proprio"] * 3
   assert stages.pretrained_from(runs)["/w/place_ae+proprio"] == "/w/place_ae"
   evals = {task: (sub.policy.eval.action, sub.policy.eval.history) for task, _, sub, _ in runs}
   assert evals == {"push": ("mean", 0), "pick": ("mean", 0), "place": ("sample", 1)}

@@ -34,6 +34,41 @@ def test_the_stage_log_sums_the_seconds_of_resumed_attempts(tmp_path):
   assert entry["state"] == "done" and entry["seconds"] == pytest.approx(12.5) and "pid" not in entry
 
 
+def test_the_stage_log_counts_a_killed_attempt_to_its_last_beat_in_seconds_and_core_seconds(tmp_path):
+  workdir, cores = str(tmp_path), len(os.sched_getaffinity(0))
+  rundir.record_stage(workdir, "train_policy", "running")
+  log = rundir.read_stage_log(workdir)
+  entry = log["train_policy"]
+  assert entry["cores"] == cores and entry["beat"] == entry["attempt"]
+  entry.update(pid=_dead_pid(), cores=3, beat=entry["attempt"] + 100.0)   # killed 100 s in, on 3 cores
+  with open(rundir.stage_log_path(workdir), "w") as f:
+    json.dump(log, f)
+  rundir.record_stage(workdir, "train_policy", "running")               # the resume adds the killed attempt
+  entry = rundir.read_stage_log(workdir)["train_policy"]
+  assert (entry["seconds"], entry["core_seconds"], entry["cores"]) == (100.0, 300.0, cores)
+  rundir.record_stage(workdir, "train_policy", "done", 20.0)
+  entry = rundir.read_stage_log(workdir)["train_policy"]
+  assert (entry["seconds"], entry["core_seconds"]) == (120.0, 300.0 + 20.0 * cores)
+  assert not {"pid", "beat", "attempt"} & set(entry)
+  assert rundir.core_seconds({"seconds": 7.0}) == 7.0                    # logged before cores were: one core
+
+
+def test_the_stage_clock_beats_while_a_stage_runs_and_an_interrupted_attempt_keeps_its_time(tmp_path):
+  import time  # pylint: disable=import-outside-toplevel
+  workdir = str(tmp_path)
+  with pytest.raises(KeyboardInterrupt):
+    with rundir.stage_clock(workdir, "evaluate", every=0.01):
+      time.sleep(0.2)
+      raise KeyboardInterrupt
+  entry = rundir.read_stage_log(workdir)["evaluate"]
+  assert entry["state"] == "running" and entry["beat"] - entry["attempt"] >= 0.2   # its last beat: when it stopped
+  with rundir.stage_clock(workdir, "evaluate", every=60.0):
+    pass
+  entry = rundir.read_stage_log(workdir)["evaluate"]
+  assert entry["state"] == "done" and 0.2 <= entry["seconds"] < 5.0
+  assert entry["core_seconds"] == pytest.approx(entry["seconds"] * len(os.sched_getaffinity(0)), abs=0.2)
+
+
 def _grid_workdir(tmp_path):
   config = common.get_config("push", "state", "tiny")
   config.grid = dict(tasks=("push", "pick"), encoders=("state", "objects"), publish="")
@@ -71,6 +106,9 @@ def test_status_of_a_grid_says_done_running_stopped_skipped_and_pending(tmp_path
   assert rows[("push", "objects")]["stages"]["train_policy"] == "pending"
   text = status.render(list(rows.values()))
   assert "| push | state | done | 1m00s | 2m00s |" in text
+  assert f"| {rows[('push', 'state')]['core_hours']:.2f} |" in text.splitlines()[2]
+  assert rows[("push", "state")]["core_hours"] == pytest.approx(
+      60.0 * sum(range(1, len(stages) + 1)) * len(os.sched_getaffinity(0)) / 3600)
   assert "1 done, 1 running, 1 skipped, 1 stopped of 4 run(s)" in text
   # A run none of whose stages started is pending.
   os.remove(rundir.stage_log_path(stopped))
