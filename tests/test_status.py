@@ -69,6 +69,25 @@ def test_the_stage_clock_beats_while_a_stage_runs_and_an_interrupted_attempt_kee
   assert entry["core_seconds"] == pytest.approx(entry["seconds"] * len(os.sched_getaffinity(0)), abs=0.2)
 
 
+def test_compute_sums_core_hours_per_cell_and_row_with_the_collection_apart(tmp_path):
+  from roboshape.eval import compute  # pylint: disable=import-outside-toplevel
+  logs = {("push", "savi"): {"collect": dict(state="done", seconds=1800.0, core_seconds=3600.0),
+                             "train_policy": dict(state="done", seconds=3600.0, core_seconds=3600.0),
+                             "evaluate": dict(state="done", seconds=900.0)},            # before cores: one core
+          ("push", "state"): {"train_policy": dict(state="running", seconds=1800.0, core_seconds=1800.0)}}
+  runs = []
+  for (task, column), log in logs.items():
+    folder = tmp_path / f"{task}_{column}"
+    folder.mkdir()
+    (folder / "stages.json").write_text(json.dumps(log))
+    runs.append((task, column, str(folder)))
+  runs.append(("pick", "savi", str(tmp_path / "pick_savi")))                            # not run yet
+  assert compute.core_hours(runs[0][2]) == {"collect": 1.0, "train_policy": 1.0, "evaluate": 0.25}
+  text = compute.render(runs, ["push", "pick"], ["savi", "state"])
+  assert "| push | 1.2 | 0.5 | 1.0 | 2.8 |" in text and "| pick | - | - | 0.0 | 0.0 |" in text
+  assert text.rstrip().endswith("2.8 core-hours in all.")
+
+
 def _grid_workdir(tmp_path):
   config = common.get_config("push", "state", "tiny")
   config.grid = dict(tasks=("push", "pick"), encoders=("state", "objects"), publish="")

@@ -16,7 +16,7 @@ overall.png (mean success per encoder and level across tasks, the paper's overal
 summary rows and every interval) and results.csv (every rollout of every run). report.md holds, in order: the
 verdict on the paper's two claims (roboshape/eval/claims.py), then per task the table, each cell's success with its
 95% interval (roboshape/eval/stats.py), SAVi's success minus each other encoder's, and each encoder's robustness to
-the shift levels; then the figures.
+the shift levels; then the core-hours of each cell and row (roboshape/eval/compute.py); then the figures.
 """
 import csv
 import json
@@ -32,6 +32,7 @@ from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.eval import claims
+from roboshape.eval import compute
 from roboshape.eval import paper
 from roboshape.eval import plots
 from roboshape.eval import publish
@@ -204,6 +205,9 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
                           claims.robustness_table(answer, task, encoders))):
       if table:
         md += [title, "", table]
+  md += ["## Compute", "", "Core-hours per cell and per task's row, from each run's stage log (stages.json: every "
+         "attempt's wall time times the cores it held; roboshape/eval/compute.py).", "",
+         compute.render(runs, tasks, encoders)]
   if answer.success:
     paths["success_by_level.png"] = plots.levels_with_intervals(
         {k: (e.value, e.low, e.high) for k, e in answer.success.items()}, [t for t in tasks if any(
