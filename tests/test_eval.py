@@ -656,7 +656,9 @@ def test_grid_sets_training_seeds_per_task_and_publish_by_variant():
 def test_a_proprio_column_without_its_plain_column_pretrains_its_own_encoder():
   config = reproduce.get_config("small")
   config.grid.tasks, config.grid.encoders = ("push",), ("ae+proprio", "state")
-  (_, column, sub, _), _ = stages.grid_configs(config, "/w")
+  runs = list(stages.grid_configs(config, "/w"))
+  assert [c for _, c, _, _ in runs] == ["state", "ae+proprio"]          # a column beyond the paper's comes last
+  (_, column, sub, _) = runs[1]
   assert (column, sub.encoder, sub.policy.proprio, sub.pretrain.from_workdir) == ("ae+proprio", "ae", True, "")
   assert "pretrain" in sub.stages and stages.pretrained_from(stages.grid_configs(config, "/w")) == {}
 
