@@ -141,17 +141,19 @@ def test_host_devices_one_per_core_of_the_process(monkeypatch):
                                              "--xla_force_host_platform_device_count=1"]
 
 
-def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields():
-  """The committed :small runs' config.json hold SAVi's training settings in savi.train/savi.eval and the AE's frame
-  model nowhere: read back (rundir.load_config), they are today's fields with their values, and the study finds no
-  change against today's :small defaults but the recipe adopted since (200 demos then, 2000 now; a field they
-  predate, such as policy.proprio, is none)."""
+def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields(tmp_path):
+  """A config.json of the former :small table (push x AE's, kept in tests/fixtures) holds SAVi's training settings in
+  savi.train/savi.eval and the AE's frame model nowhere: read back (rundir.load_config), it has today's fields with
+  their values, and the study finds no change against today's :small defaults but the recipe adopted since (200
+  demos then, 2000 now; a field it predates, such as policy.proprio, is none)."""
+  import shutil  # pylint: disable=import-outside-toplevel
   from roboshape import rundir  # pylint: disable=import-outside-toplevel
   from roboshape import study  # pylint: disable=import-outside-toplevel
-  folder = os.path.join(ROOT, "results", "small", "push_ae")
-  with open(os.path.join(folder, "config.json")) as f:
+  fixture = os.path.join(ROOT, "tests", "fixtures", "config_before_pretrain_section.json")
+  with open(fixture) as f:
     old = json.load(f)
-  config = rundir.load_config(folder)
+  shutil.copy(fixture, tmp_path / rundir.CONFIG_FILE)
+  config = rundir.load_config(str(tmp_path))
   assert config.pretrain.train.steps == old["savi"]["train"]["steps"] == 8000
   assert tuple(config.pretrain.train_seeds) == tuple(old["savi"]["train"]["seeds"])
   assert (config.pretrain.train.clip_norm, config.pretrain.train.clip_norm_of) == (0.05, "mean")
