@@ -35,6 +35,7 @@ import contextlib
 import fcntl
 import json
 import os
+from typing import Tuple
 
 from roboshape import fileio
 from roboshape.errors import UserError
@@ -302,18 +303,20 @@ def read_stage_log(workdir: str, strict: bool = False) -> dict:
   return {}
 
 
-def core_seconds(entry: dict) -> float:
-  """A stage log entry's core-seconds; an entry logged before cores were recorded counts one core."""
-  return float(entry.get("core_seconds", entry.get("seconds", 0.0)))
+def logged_time(entry: dict) -> Tuple[float, float]:
+  """(wall seconds, core-seconds) an entry of the stage log accounts for: its finished attempts and the unfinished
+  ones the next attempt added, plus an attempt still open (running, or killed) up to its last beat. An entry logged
+  before cores were recorded counts one core."""
+  seconds = float(entry.get("seconds", 0.0))
+  core = float(entry.get("core_seconds", seconds))
+  if entry.get("state") == "running" and "beat" in entry and "attempt" in entry:
+    open_for = max(0.0, float(entry["beat"]) - float(entry["attempt"]))
+    seconds, core = seconds + open_for, core + open_for * int(entry.get("cores", 1))
+  return seconds, core
 
 
 def _held_cores() -> int:
   return len(os.sched_getaffinity(0))
-
-
-def _add_time(entry: dict, seconds: float, cores: int) -> None:
-  entry["core_seconds"] = round(core_seconds(entry) + seconds * cores, 1)
-  entry["seconds"] = round(float(entry.get("seconds", 0.0)) + seconds, 1)
 
 
 def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> None:
@@ -327,13 +330,14 @@ def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> 
   entry = dict(log.get(stage, {}))
   now = datetime.datetime.now().isoformat(timespec="seconds")
   if state == "running":
-    if entry.get("state") == "running" and "beat" in entry and "attempt" in entry:
-      _add_time(entry, max(0.0, float(entry["beat"]) - float(entry["attempt"])), int(entry.get("cores", 1)))
+    seconds, core = logged_time(entry)              # with the attempt before this one, if it never finished
+    entry.update(seconds=round(seconds, 1), core_seconds=round(core, 1))
     clock = time.time()
     entry.update(state="running", pid=os.getpid(), started=now, cores=_held_cores(), attempt=clock, beat=clock)
   else:
-    _add_time(entry, seconds, int(entry.get("cores", _held_cores())))
-    entry.update(state="done", finished=now)
+    before, core = logged_time(dict(entry, state="done"))
+    entry.update(state="done", finished=now, seconds=round(before + seconds, 1),
+                 core_seconds=round(core + seconds * int(entry.get("cores", _held_cores())), 1))
     for key in ("pid", "attempt", "beat"):
       entry.pop(key, None)
   log[stage] = entry

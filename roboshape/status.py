@@ -26,7 +26,8 @@ def _alive(pid) -> bool:
 
 
 def run_status(stages, run_dir: str) -> Dict:
-  """{state, stages: {stage: seconds or state}, seconds, core_hours} of one run whose config runs `stages`."""
+  """{state, stages: {stage: seconds or state}, seconds, core_hours} of one run whose config runs `stages`; the
+  totals count a stage still running (or killed) up to its last beat (rundir.logged_time)."""
   if os.path.exists(os.path.join(run_dir, rundir.SKIPPED_FILE)):
     return dict(state="skipped", stages={}, seconds=0.0, core_hours=0.0)
   log = rundir.read_stage_log(run_dir, strict=True)
@@ -49,9 +50,9 @@ def run_status(stages, run_dir: str) -> Dict:
     state = "stopped"
   else:
     state = "pending"
-  entries = [entry for entry in log.values() if isinstance(entry, dict)]
-  return dict(state=state, stages=per_stage, seconds=sum(float(e.get("seconds", 0.0)) for e in entries),
-              core_hours=sum(rundir.core_seconds(e) for e in entries) / 3600)
+  times = [rundir.logged_time(entry) for entry in log.values() if isinstance(entry, dict)]
+  return dict(state=state, stages=per_stage, seconds=sum(t[0] for t in times),
+              core_hours=sum(t[1] for t in times) / 3600)
 
 
 def workdir_status(workdir: str) -> List[Dict]:

@@ -50,7 +50,9 @@ def test_the_stage_log_counts_a_killed_attempt_to_its_last_beat_in_seconds_and_c
   entry = rundir.read_stage_log(workdir)["train_policy"]
   assert (entry["seconds"], entry["core_seconds"]) == (120.0, 300.0 + 20.0 * cores)
   assert not {"pid", "beat", "attempt"} & set(entry)
-  assert rundir.core_seconds({"seconds": 7.0}) == 7.0                    # logged before cores were: one core
+  assert rundir.logged_time({"state": "done", "seconds": 7.0}) == (7.0, 7.0)   # logged before cores were: one core
+  open_entry = dict(state="running", seconds=5.0, core_seconds=10.0, cores=2, attempt=100.0, beat=130.0)
+  assert rundir.logged_time(open_entry) == (35.0, 70.0)                 # an open attempt, up to its last beat
 
 
 def test_the_stage_clock_beats_while_a_stage_runs_and_an_interrupted_attempt_keeps_its_time(tmp_path):

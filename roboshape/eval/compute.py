@@ -16,7 +16,7 @@ from roboshape.eval import tables
 
 def core_hours(folder: str) -> Dict[str, float]:
   """{stage: core-hours} of the stage log in `folder` ({} when it has none)."""
-  return {stage: rundir.core_seconds(entry) / 3600 for stage, entry in rundir.read_stage_log(folder).items()
+  return {stage: rundir.logged_time(entry)[1] / 3600 for stage, entry in rundir.read_stage_log(folder).items()
           if isinstance(entry, dict)}
 
 
