@@ -7,7 +7,7 @@ Command:  python launch.py --config=configs/place_ae.py:small --workdir=runs/pla
 Runtime:  under an hour on one core at :small; on place the behaviour cloning takes three times the steps (15000),
           plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage
           times: results/small/README.md.
-Results:  results/small/place_ae/README.md
+Results:  results/small/place_ae/README.md (not published yet: the `:small` grid publishes it)
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 Its pretrain stage is roboshape/train/pretrain.py; ae.latent_size sets the token width (0: savi.slot_size).
 """

@@ -5,7 +5,7 @@ Command:  python launch.py --config=configs/place_state.py:small --workdir=runs/
 Runtime:  under half an hour per training seed on one core at :small (place: 15000 steps, about 35 minutes), plus the
           task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage times:
           results/small/README.md.
-Results:  results/small/place_state/README.md
+Results:  results/small/place_state/README.md (not published yet: the `:small` grid publishes it)
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 Needs a dataset that stores observation/state (every dataset collected since roboshape-envs-2). No pretraining, no
 rendering needed by the encoder.

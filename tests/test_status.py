@@ -187,6 +187,13 @@ def test_publish_copies_the_results_under_fixed_names_and_keeps_one_run(tmp_path
     assert f.read() == "earlier"                          # a hand-written README stays
   with open(os.path.join(dest, "config.json")) as f:
     assert json.load(f)["encoder"] == "savi"
+  publish.publish(config, workdir, dest_root)                # the same run again: its README stays
+  assert os.path.isfile(os.path.join(dest, "README.md"))
+  other = common.get_config("push", "savi", "tiny")          # another run into the same folder: the README that
+  other.seed = config.seed + 1                               # described the one before goes with its files
+  rundir.save_config(other, workdir)
+  publish.publish(other, workdir, dest_root)
+  assert not os.path.exists(os.path.join(dest, "README.md"))
 
 
 def test_publish_copies_every_training_seeds_validation_curve(tmp_path):

@@ -22,7 +22,8 @@ its evaluation is complete. What is copied, under fixed names (files the run doe
   videos/*.mp4                     the rollout videos the evaluation recorded (a few per level)
 
 Files of an earlier publication of the same run that this one does not replace are removed, so the folder always
-holds one run; a README.md written there by hand is kept.
+holds one run; a README.md written there by hand is kept while it is this run's (the folder's config.json is the
+run's, or there is none yet), and goes with the files of another run that the folder held before.
 """
 import glob
 import json
@@ -58,6 +59,18 @@ def planned(config, workdir: str) -> List[tuple]:
   return [(src, name) for src, name in pairs if os.path.isfile(src)]
 
 
+def _same_run(published_config: str, run_config: str) -> bool:
+  """Whether a folder's README may stay: it was written for this run (its published config.json is the run's), or
+  ahead of any run (no config.json yet). Another run's README describes another run, so it goes with its files."""
+  if not os.path.isfile(published_config):
+    return True
+  try:
+    with open(published_config) as a, open(run_config) as b:
+      return json.load(a) == json.load(b)
+  except (OSError, ValueError):
+    return False
+
+
 def publish(config, workdir: str, dest_root: str) -> str:
   """Copies the results of the run in `workdir` to <dest_root>/<task>_<column>/; returns that folder. A run without
   a dataset.json of its own (its collect stage ran before runs recorded one) gets one made from its dataset's
@@ -74,10 +87,11 @@ def publish(config, workdir: str, dest_root: str) -> str:
   if record is not None:
     names.add(DATASET)
   if os.path.isdir(dest):
+    kept = KEPT if _same_run(os.path.join(dest, "config.json"), rundir.config_path(workdir)) else ()
     for folder, _, files in os.walk(dest):
       for name in files:
         rel = os.path.relpath(os.path.join(folder, name), dest)
-        if rel not in names and rel not in KEPT:
+        if rel not in names and rel not in kept:
           os.remove(os.path.join(folder, name))
   for src, name in pairs:
     target = os.path.join(dest, name)
