@@ -14,8 +14,8 @@ after compiling and one warm-up step (jax.block_until_ready at the end of each r
   BC:    the `:paper` behaviour-cloning step (policy.width, num_layers, policy.train.batch_size, history) on SAVi-like
          tokens (savi.num_slots x savi.slot_size a frame), built as benchmarks/bc_speed.py builds it
          (bc_speed.compiled_step, the batch on the device as train_policy puts it);
-  AE:    the `ae` encoder's pretrain step (pretrain.compiled, the same pretrain section as SAVi's) when the time
-         budget allows; otherwise the SAVi step stands in for it, as an upper bound (said in the output);
+  AE:    the `ae` encoder's pretrain step (pretrain.compiled, the same pretrain section as SAVi's); if it fails,
+         the SAVi step stands in for it in the projection, as an upper bound (said in the output);
   matmul: a dense float32 matmul (benchmarks/flops.py) at JAX's default precision, the rate the steps are set against.
 Each step's FLOPs come from XLA's cost analysis of the compiled step; achieved TFLOP/s = FLOPs / median step time.
 Then it prints the GPU-hours of the `:paper` grid (configs/reproduce.py:paper, and every registered encoder) from
@@ -62,7 +62,6 @@ from roboshape.train import sharding  # pylint: disable=wrong-import-position
 SIM_MODULES = ("mani_skill", "sapien")                         # the simulator
 DATA_MODULES = ("tensorflow", "tensorflow_datasets")           # the RLDS/TFDS dataset and the feature cache
 HEAVY_MODULES = SIM_MODULES + DATA_MODULES + ("torch",)
-AE_START_BY_S = 200      # measure the AE step only if it can start this many seconds into the run
 TRY_MIN_S = 60           # seconds of budget a try at the :tiny pipeline or physx_cuda needs left to start
 
 
@@ -259,17 +258,17 @@ def print_projection(savi_m: Measured, ae_m, bc_m: Measured, smoke: bool) -> Non
     pre, bc = sum(r.pretrain_s for r in subset), sum(r.bc_s for r in subset)
     print(f"  total, {label}: pretrain {pre / 3600:.1f} h + BC {bc / 3600:.1f} h = {(pre + bc) / 3600:.1f} "
           f"GPU-hours", flush=True)
-  print_assumptions(savi_m, bc_m)
+  print_assumptions(savi_m, ae_m, bc_m)
 
 
-def print_assumptions(savi_m: Measured, bc_m: Measured) -> None:
+def print_assumptions(savi_m: Measured, ae_m, bc_m: Measured) -> None:
   ev = common.get_config("push", "savi", "paper").eval
   lines = (
       "hours = runs x steps (the :paper configs' pretrain.train.steps, policy.train.steps) x the median step time "
       "above; runs: pretraining seeds (pretrain.train_seeds, () = one run) and policy training seeds "
       "(reproduce.py's grid.train_seeds per task) per cell of 3 tasks x encoder",
-      f"each run also compiles its step once (SAVi {savi_m.compile_s:.0f} s, BC {bc_m.compile_s:.0f} s here), not "
-      "counted",
+      f"each run also compiles its step once (SAVi {savi_m.compile_s:.0f} s, "
+      f"{f'AE {ae_m.compile_s:.0f} s, ' if ae_m else ''}BC {bc_m.compile_s:.0f} s here), not counted",
       "the timed steps reuse one batch already on the GPU: the input pipeline (TFDS clips for pretraining, the "
       "feature cache's windows for BC), checkpoints, logging and in-training validation (SAVi every "
       "pretrain.eval.every steps, BC every policy.train.eval_every) are not counted",
@@ -326,7 +325,8 @@ def try_physx_cuda(budget_s: float, smoke: bool, steps: int = 50) -> None:
   absent = missing(SIM_MODULES + ("torch",))
   label = "ManiSkill physx_cuda (env.sim_backend='physx_cuda') env steps/s"
   if absent:
-    log(f"unmeasured: {label}: needs mani_skill + SAPIEN (+ torch); not importable here: {', '.join(absent)}")
+    log(f"unmeasured: {label}: needs mani_skill + SAPIEN (+ torch), and SAPIEN's GPU PhysX library "
+        f"(libPhysXGpu_64.so, which SAPIEN downloads from GitHub at first use); not importable here: {', '.join(absent)}")
     return
   if smoke or budget_s - elapsed() < TRY_MIN_S:
     log(f"unmeasured: {label}: its imports work, but {not_tried(smoke)}")
@@ -358,8 +358,8 @@ def parse_args():
   parser.add_argument("--savi-steps", type=int, default=3, help="chained SAVi (and AE) steps a round")
   parser.add_argument("--bc-steps", type=int, default=10, help="chained BC steps a round")
   parser.add_argument("--matmul", type=int, default=8192, help="side of the reference float32 matmul")
-  parser.add_argument("--budget-s", type=float, default=330.0,
-                      help="seconds after which the optional parts (AE, the tries) are not started")
+  parser.add_argument("--budget-s", type=float, default=420.0,
+                      help="seconds after which the tries (the :tiny pipeline, physx_cuda) are not started")
   args = parser.parse_args()
   if args.smoke:
     args.rounds, args.savi_steps, args.bc_steps, args.matmul = 1, 1, 1, 256
@@ -399,13 +399,9 @@ def main() -> int:
   variant, batch = ("tiny", 2) if args.smoke else ("paper", 0)
   header(variant)
   savi_m = attempt("SAVi pretrain step", measure_savi, variant, batch, args.rounds, args.savi_steps)
+  ae_m = attempt("AE pretrain step", measure_ae, variant, batch, args.rounds, args.savi_steps)
   bc_m = attempt("BC train step", measure_bc, variant, batch, args.rounds, args.bc_steps)
-  print_matmul(args.matmul, (savi_m, bc_m))
-  ae_m = None
-  if elapsed() < AE_START_BY_S:
-    ae_m = attempt("AE pretrain step", measure_ae, variant, batch, args.rounds, args.savi_steps)
-  else:
-    log(f"AE step not measured: {elapsed():.0f} s into the run (> {AE_START_BY_S} s); SAVi's stands in for it")
+  print_matmul(args.matmul, (savi_m, ae_m, bc_m))
   if savi_m and bc_m:
     print_projection(savi_m, ae_m, bc_m, args.smoke)
   else:
