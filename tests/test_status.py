@@ -7,6 +7,7 @@ import sys
 import pytest
 
 from configs import common
+from roboshape import fileio
 from roboshape import rundir
 from roboshape import status
 from roboshape.errors import UserError
@@ -28,10 +29,14 @@ def test_the_stage_log_sums_the_seconds_of_resumed_attempts(tmp_path):
   entry = rundir.read_stage_log(workdir)["collect"]
   assert entry["state"] == "running" and entry["pid"] == os.getpid()
   rundir.record_stage(workdir, "collect", "done", 12.04)
+  log = rundir.read_stage_log(workdir)
+  log["collect"]["started"] = "2026-01-01T00:00:00"      # a first attempt long ago
+  fileio.atomic_write_json(rundir.stage_log_path(workdir), log)
   rundir.record_stage(workdir, "collect", "running")      # resumed: it was done, runs again (and skips its work)
   rundir.record_stage(workdir, "collect", "done", 0.5)
   entry = rundir.read_stage_log(workdir)["collect"]
   assert entry["state"] == "done" and entry["seconds"] == pytest.approx(12.5) and "pid" not in entry
+  assert entry["started"] == "2026-01-01T00:00:00"         # the first attempt's start, not the resume's
 
 
 def test_the_stage_log_counts_a_killed_attempt_to_its_last_beat_in_seconds_and_core_seconds(tmp_path):
