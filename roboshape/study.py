@@ -17,15 +17,17 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
   reached                         per milestone of the task, how many of those rollouts reached it
   val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
   fg_ari                          the selected SAVi's final validation FG-ARI, where the run pretrained one
-  <stage>_s, core_hours           each stage's wall seconds (stages.json; collect excluded: the dataset is shared
-                                  by a task's probes) and their sum x the cores the run was pinned to, in hours
+  <stage>_s, cores, core_hours    each stage's wall seconds (stages.json; collect excluded: the dataset is shared
+                                  by a task's probes), the most cores a stage held, and the stages' core-seconds
+                                  (rundir.logged_time: wall time x the cores held; one core where the log predates
+                                  that record) in hours
 
 `add` also copies those files (KEPT) to <study>/<probe>/, so the row can be read again from the repository.
 `render` writes the table between the README's markers (BEGIN, END) from the CSV alone, so the README cannot
 quote a number the CSV does not hold (tests/test_study.py checks the committed study).
 
-  python -m roboshape.study STUDY_DIR WORKDIR --name NAME [--cores N]   # add a probe, rebuild the README
-  python -m roboshape.study STUDY_DIR                                   # rebuild the README from the CSV
+  python -m roboshape.study STUDY_DIR WORKDIR --name NAME   # add a probe, rebuild the README
+  python -m roboshape.study STUDY_DIR                       # rebuild the README from the CSV
 """
 import argparse
 import csv
@@ -140,7 +142,7 @@ def read_baseline(study: str) -> Dict:
     return json.load(f)
 
 
-def probe_row(workdir: str, name: str, cores: int = 1, baseline: Optional[Dict] = None) -> Dict:
+def probe_row(workdir: str, name: str, baseline: Optional[Dict] = None) -> Dict:
   """The study's row of the evaluated run in `workdir` (see the module docstring); `baseline`: the study's
   read_baseline."""
   config = rundir.load_config(workdir).to_dict()
@@ -152,15 +154,17 @@ def probe_row(workdir: str, name: str, cores: int = 1, baseline: Optional[Dict] 
   metrics = [m for m in _val_metrics(workdir) if "action_mse" in m]
   best = min(metrics, key=lambda m: m["action_mse"]) if metrics else None
   stages = rundir.read_stage_log(workdir)
-  seconds = {s: stages.get(s, {}).get("seconds") for s in TIMED}
-  total = sum(v for v in seconds.values() if v)
+  timed = {s: stages[s] for s in TIMED if s in stages}
+  seconds = {s: rundir.logged_time(timed[s])[0] if s in timed else None for s in TIMED}
+  core_seconds = sum(rundir.logged_time(entry)[1] for entry in timed.values())
+  cores = max((int(entry.get("cores", 1)) for entry in timed.values()), default=1)
   row = dict(probe=name, task=config["task"], encoder=config["encoder"], variant=config["variant"],
              changed=changed_fields(config, baseline) or "(none)", rollouts=len(rollouts), successes=wins,
              success=f"{wins / len(rollouts):.2f}",
              reached=" ".join(f"{m} {reached.count(m)}" for m in MILESTONES[config["task"]]),
              val_mse_best=f"{best['action_mse']:.4f}" if best else "", best_step=best["step"] if best else "",
              val_mse_last=f"{metrics[-1]['action_mse']:.4f}" if metrics else "", fg_ari=_fg_ari(workdir),
-             cores=cores, core_hours=f"{total * cores / 3600:.2f}")
+             cores=cores, core_hours=f"{core_seconds / 3600:.2f}")
   row.update({f"{s}_s": "" if v is None else f"{v:.0f}" for s, v in seconds.items()})
   return row
 
@@ -220,10 +224,10 @@ def keep_files(workdir: str, folder: str) -> List[str]:
   return copied
 
 
-def add(study: str, workdir: str, name: str, cores: int = 1) -> Dict:
+def add(study: str, workdir: str, name: str) -> Dict:
   """Adds (or replaces) the probe `name` from `workdir`: its files in <study>/<name>/ (keep_files), its row in the
   CSV; then rebuilds the README's table."""
-  row = probe_row(workdir, name, cores, read_baseline(study))
+  row = probe_row(workdir, name, read_baseline(study))
   keep_files(workdir, os.path.join(study, name))
   rows = [r for r in read_rows(study) if r["probe"] != name] + [row]
   write_rows(study, rows)
@@ -236,13 +240,12 @@ def main(argv) -> int:
   parser.add_argument("study")
   parser.add_argument("workdir", nargs="?")
   parser.add_argument("--name")
-  parser.add_argument("--cores", type=int, default=1)
   args = parser.parse_args(argv)
   try:
     if args.workdir:
       if not args.name:
         raise UserError("name the probe: --name NAME (its row in probes.csv).")
-      print(add(args.study, args.workdir, args.name, args.cores))
+      print(add(args.study, args.workdir, args.name))
     else:
       render(args.study)
   except UserError as e:

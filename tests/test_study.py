@@ -41,19 +41,21 @@ def _fake_run(workdir, variant="small", stored=None, **changes):
     json.dump([dict(step=500, action_mse=0.09), dict(step=1000, action_mse=0.07), dict(step=1500, action_mse=0.08)],
               f)
   with open(os.path.join(workdir, "stages.json"), "w") as f:
-    json.dump({"collect": {"seconds": 99.0}, "cache": {"seconds": 5.0}, "train_policy": {"seconds": 600.0},
-               "evaluate": {"seconds": 115.0}}, f)
+    json.dump({"collect": {"seconds": 99.0, "cores": 2}, "cache": {"seconds": 5.0},      # a log before cores were kept
+               "train_policy": {"seconds": 600.0, "core_seconds": 1200.0, "cores": 2},
+               "evaluate": {"seconds": 115.0, "core_seconds": 230.0, "cores": 2}}, f)
 
 
 def test_a_probe_row_reads_the_runs_files_and_names_only_what_changed(tmp_path):
   workdir = str(tmp_path / "run")
   _fake_run(workdir, **{"policy.history": 2, "data.dir": "/elsewhere", "eval.levels": ("train",)})
-  row = study.probe_row(workdir, "h2", cores=2)
+  row = study.probe_row(workdir, "h2")
   assert row["changed"] == "policy.history=2"          # data.dir and eval.levels are bookkeeping
   assert (row["rollouts"], row["successes"], row["success"]) == (5, 3, "0.60")   # the train level only
   assert row["reached"] == "moved 4 halfway 3 on_target 3"
   assert (row["val_mse_best"], row["best_step"], row["val_mse_last"]) == ("0.0700", 1000, "0.0800")
-  assert (row["train_policy_s"], row["pretrain_s"], row["core_hours"]) == ("600", "", f"{720 * 2 / 3600:.2f}")
+  assert (row["train_policy_s"], row["pretrain_s"], row["cores"]) == ("600", "", 2)
+  assert row["core_hours"] == f"{(5 + 1200 + 230) / 3600:.2f}"    # collect left out; cache's old entry: one core
 
 
 def test_a_removed_field_counts_as_changed_where_it_differs_from_the_default_it_had(tmp_path):
@@ -126,8 +128,7 @@ def test_the_committed_recipe_study_readme_equals_its_csv_and_the_csv_its_probes
   rows = study.read_rows(RECIPE)
   assert rows, "results/small/recipe/probes.csv holds no probe"
   for row in rows:
-    again = study.probe_row(os.path.join(RECIPE, row["probe"]), row["probe"], int(row["cores"]),
-                            study.read_baseline(RECIPE))
+    again = study.probe_row(os.path.join(RECIPE, row["probe"]), row["probe"], study.read_baseline(RECIPE))
     assert {k: str(v) for k, v in again.items()} == row
   with open(os.path.join(RECIPE, "README.md")) as f:
     text = f.read()
