@@ -374,17 +374,18 @@ def stage_clock(workdir: str, stage: str, every: float = 60.0):
 
   thread = threading.Thread(target=beat, name=f"stage-clock-{stage}", daemon=True)
   thread.start()
+  ended_well = False
   try:
     yield
-  except BaseException:
+    ended_well = True
+  finally:
     stop.set()
     thread.join()
-    with contextlib.suppress(OSError):
-      beat_stage(workdir, stage)
-    raise
-  stop.set()
-  thread.join()
-  record_stage(workdir, stage, "done", time.time() - start)
+    if ended_well:
+      record_stage(workdir, stage, "done", time.time() - start)
+    else:
+      with contextlib.suppress(OSError):
+        beat_stage(workdir, stage)
 
 
 # ----------------------------------------------------------------------------------------------------------------
