@@ -314,7 +314,10 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   try:
     for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
       batch = dp.put_batch(train_w.sample(tc.batch_size, seed, step))
+      previous = metrics
       state, metrics = train_step(state, batch, base_rng)
+      if previous is not None:      # at most one step in flight: the bar's rate is the steps' rate, not dispatch's
+        jax.block_until_ready(previous)
       done = step + 1
       if done % tc.log_every == 0 or done == tc.steps:
         writer.write(done, {**{f"train/{k}": float(v) for k, v in metrics.items()},
