@@ -8,8 +8,8 @@ each lane's child makes its own cores its devices.
 
   run_parallel(run, jobs, lanes, on_done)   # jobs: (name, config, run_dir); on_done(job, exit code, last line)
 
-Each job is a child `python -m roboshape.lanes RUN_DIR`, which reads `run` and its config (pickled) on stdin and
-calls `run(config, RUN_DIR)`. `run` is a module-level function, pickled by name: the child imports its module when
+Each job is a child `python -m roboshape.lanes RUN_DIR CORES PARENT_PID`, which pins itself to CORES (`child_setup`),
+reads `run` and its config (pickled) on stdin and calls `run(config, RUN_DIR)`. `run` is a module-level function, pickled by name: the child imports its module when
 it unpickles it, so this module imports none of its callers. A grid passes `roboshape.stages.run`, so each run
 resumes and fails exactly as `launch.py` would; everything it prints goes to RUN_DIR/log.txt (appended across
 resumes). Lane i owns the cores cores[i::lanes] of this process's affinity, and a job's simulator workers inherit
@@ -54,10 +54,11 @@ def last_line(path: str) -> str:
 
 
 def child_setup(cores: Set[int], parent: int) -> None:
-  """Runs in a lane's child before it starts (Popen's preexec_fn): pins it to `cores`, and asks Linux to send it
+  """Runs first in a lane's child (`main`, before it imports JAX): pins it to `cores`, and asks Linux to send it
   SIGTERM when the process that started it exits (prctl PR_SET_PDEATHSIG), so a lane never outlives its grid: a
   parent killed even by SIGKILL takes its lanes with it, each stopping as an interrupted run stops. A child whose
-  parent is already gone (it died before the prctl) exits at once."""
+  parent is already gone (it died before the prctl) exits at once. In the child rather than in Popen's preexec_fn:
+  Python code run between fork and exec can deadlock when the parent holds JAX's threads."""
   os.sched_setaffinity(0, cores)
   libc = ctypes.CDLL(None, use_errno=True)
   if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
@@ -72,9 +73,8 @@ def _start(run: Run, job: Job, cores: Set[int]) -> subprocess.Popen:
   env = dict(os.environ)
   env["PYTHONPATH"] = _ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
   with open(os.path.join(run_dir, LOG_FILE), "ab") as log:
-    child = subprocess.Popen([sys.executable, "-m", "roboshape.lanes", run_dir], stdin=subprocess.PIPE,
-                             stdout=log, stderr=subprocess.STDOUT, env=env,
-                             preexec_fn=lambda parent=os.getpid(): child_setup(cores, parent))
+    child = subprocess.Popen([sys.executable, "-m", "roboshape.lanes", run_dir, ",".join(map(str, sorted(cores))),
+                              str(os.getpid())], stdin=subprocess.PIPE, stdout=log, stderr=subprocess.STDOUT, env=env)
   child.stdin.write(pickle.dumps((run, config)))
   child.stdin.close()
   return child
@@ -140,11 +140,12 @@ def run_parallel(run: Run, jobs: Sequence[Job], lanes: int, on_done: Callable[[J
 
 
 def main(argv) -> int:
-  """The child: `python -m roboshape.lanes RUN_DIR`, (run, config) pickled on stdin."""
-  if len(argv) != 2:
-    print("usage: python -m roboshape.lanes RUN_DIR < pickled (run, config) (started by roboshape.lanes.run_parallel)",
-          file=sys.stderr)
+  """The child: `python -m roboshape.lanes RUN_DIR CORES PARENT_PID`, (run, config) pickled on stdin."""
+  if len(argv) != 4:
+    print("usage: python -m roboshape.lanes RUN_DIR CORES PARENT_PID < pickled (run, config) (started by "
+          "roboshape.lanes.run_parallel)", file=sys.stderr)
     return 2
+  child_setup({int(c) for c in argv[2].split(",")}, int(argv[3]))
   run, config = pickle.load(sys.stdin.buffer)     # imports run's module (roboshape.stages for a grid)
   print(f"[roboshape] {config.name} on cores {sorted(os.sched_getaffinity(0))}, pid {os.getpid()}", flush=True)
   try:

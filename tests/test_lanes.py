@@ -114,16 +114,19 @@ def test_a_lane_child_dies_with_its_parent_even_when_the_parent_is_killed(tmp_pa
   import signal  # pylint: disable=import-outside-toplevel
   import subprocess  # pylint: disable=import-outside-toplevel
   import sys  # pylint: disable=import-outside-toplevel
-  script = ("import os, subprocess, sys, time\nfrom roboshape import lanes\n"
-            "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'],\n"
-            "    preexec_fn=lambda parent=os.getpid(): lanes.child_setup({0}, parent))\n"
+  script = ("import os, subprocess, sys, time\n"       # the child sets itself up first, as lanes.main does
+            "child = subprocess.Popen([sys.executable, '-c', 'import time; from roboshape import lanes; '\n"
+            "    f'lanes.child_setup({{0}}, {os.getpid()}); time.sleep(120)'])\n"
             "print(child.pid, flush=True)\ntime.sleep(120)\n")
   parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
   child = int(parent.stdout.readline())
   assert not _gone(child)
-  with open(f"/proc/{child}/status") as f:
-    assert next(l for l in f if l.startswith("Cpus_allowed_list")).split()[1] == "0"   # pinned as asked
+
+  def allowed():
+    with open(f"/proc/{child}/status") as f:
+      return next(l for l in f if l.startswith("Cpus_allowed_list")).split()[1]
+  assert _wait_for(lambda: allowed() == "0"), allowed()            # it pins itself as asked
   parent.send_signal(signal.SIGKILL)
   parent.wait()
   assert _wait_for(lambda: _gone(child)), f"lane child {child} outlived its killed parent"
