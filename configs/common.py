@@ -28,7 +28,8 @@ STAGES = rundir.STAGES     # every stage, in the order a run takes them
 # encoder alike. Place: a mode drawn from the GMM rather than the mixture mean, which averages "close" with "open"
 # and "lift" with "descend" at the grasp, so the gripper hovers half shut; and one frame of history, since with ten
 # the policy reads its next action off its own past motion and copies its own slowing. Push and pick keep the
-# defaults. The trials that chose this (each setting alone and both): `git show cb0d979:results/small/place_state/README.md`.
+# defaults. The trials that chose this (each setting alone and both):
+# `git show cb0d979:results/small/place_state/README.md`.
 TASK_CONTROL = {"place": dict(action="sample", history=1)}
 # Behaviour-cloning steps where a task's :small policy needs more than policy_config's: place's validation action
 # MSE still falls at 5000 steps, and three times the steps lift its state control several-fold

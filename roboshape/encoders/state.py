@@ -6,8 +6,8 @@ followed by RELATIVE (9 entries): the cube relative to the tool centre point, th
 point and the goal relative to the cube, in units of the controller's position step (0.1 m, so 1 cm reads 0.1).
 These are fixed linear maps of the state, so the token holds the same information; they spare the policy learning
 small differences of large coordinates, which is where a policy on the raw vector was imprecise
-(`git show cb0d979:results/small/pick_state/README.md`). It needs a dataset that stores `observation/state` (every dataset collected
-since the field exists).
+(`git show cb0d979:results/small/pick_state/README.md`). It needs a dataset that stores `observation/state` (every
+dataset collected since the field exists).
 
 `state.withhold` names FIELDS of the state vector that the token leaves out (their entries zero, and every RELATIVE
 entry computed from one of them zero): an ablation that says what a field is worth to the policy, e.g. the cube's
