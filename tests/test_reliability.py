@@ -267,6 +267,33 @@ def test_a_damaged_checkpoint_falls_back_to_the_older_step(policy_run, tmp_path,
   assert summary["step"] == 20 and _same(_params(config, workdir), trained)
 
 
+def test_an_interrupted_policy_keeps_its_steps_and_resumes_to_the_uninterrupted_params(policy_run, tmp_path,
+                                                                                        monkeypatch):
+  from roboshape.checkpoint import Checkpointer  # pylint: disable=import-outside-toplevel
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  config = _policy_config(steps=30)                  # both copies resume from step 20
+  straight, features = _copy_run(policy_run, tmp_path / "straight")
+  bc.train(config, straight, features)
+  interrupted, features = _copy_run(policy_run, tmp_path / "interrupted")
+
+  class StopAfterFive(bc.tqdm):                      # Ctrl-C once five steps are done (no checkpoint is due)
+    def __iter__(self):
+      for i, step in enumerate(super().__iter__()):
+        if i == 5:
+          raise KeyboardInterrupt
+        yield step
+
+  with monkeypatch.context() as stop:
+    stop.setattr(bc, "tqdm", StopAfterFive)
+    with pytest.raises(KeyboardInterrupt):
+      bc.train(config, interrupted, features)
+  with Checkpointer(os.path.join(interrupted, "policy", "checkpoints")) as ckpt:
+    assert ckpt.latest_step() == 25
+  bc.train(config, interrupted, features)
+  assert _same(_params(config, interrupted), _params(config, straight))
+  assert not _same(_params(config, interrupted, 25), _params(config, straight))
+
+
 def test_no_checkpoint_that_restores_is_one_line(policy_run, tmp_path):
   workdir, _ = _copy_run(policy_run, tmp_path)
   _damage_step(workdir, 10)

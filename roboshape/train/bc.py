@@ -275,6 +275,18 @@ def train(config, workdir: str, feature_path: str, train_seed=None) -> dict:
   return summary
 
 
+def _keep_interrupted(ckpt: Checkpointer, state, start: int) -> None:
+  """After an interrupt (Ctrl-C, a grid stopped at the end of a session), a checkpoint of the steps done since the
+  newest one, so the resume repeats none of them: batches and dropout are drawn from the step, so a run resumed
+  from any step ends where an uninterrupted one does."""
+  ckpt.wait()
+  step = int(state["step"])
+  if step > start and step != ckpt.latest_step():
+    ckpt.save(step, state)
+    ckpt.wait()
+    tqdm.write(f"[train_policy] interrupted: saved step {step}")
+
+
 def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> dict:
   """The training loop of `train`, from the newest checkpoint in `ckpt` that restores; returns the summary.
   `seed` draws the initial params, the dropout masks and the batches."""
@@ -332,6 +344,9 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
                    f"val nll {val['nll']:.3f}, val action mse {val['action_mse']:.5f}")
       if done % tc.checkpoint_every == 0 or done == tc.steps:
         ckpt.save(done, state)
+  except KeyboardInterrupt:
+    _keep_interrupted(ckpt, state, start)
+    raise
   finally:
     writer.close()      # what TensorBoard got so far, also after an interrupt
   ckpt.wait()
