@@ -31,6 +31,20 @@ def atomic_write_file(path: str, write: Callable[[BinaryIO], None]) -> None:
     raise
 
 
+def save_figure(fig, path: str, rect=(0, 0, 1, 1), dpi=None) -> str:
+  """Lays a matplotlib figure out within `rect` (of the figure: left, bottom, right, top), writes it atomically to
+  `path` (making its folder; the format from the extension; `dpi` None: the figure's) and closes it; returns
+  `path`."""
+  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
+  fig.tight_layout(rect=rect)
+  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  try:
+    atomic_write_file(path, lambda f: fig.savefig(f, format=os.path.splitext(path)[1][1:], dpi=dpi))
+  finally:
+    plt.close(fig)
+  return path
+
+
 def atomic_write_text(path: str, text: str) -> None:
   """Replaces `path` with `text` (UTF-8) atomically."""
   atomic_write_file(path, lambda f: f.write(text.encode("utf-8")))

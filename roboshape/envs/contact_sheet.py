@@ -8,12 +8,12 @@ levels). With --segmentation each frame is followed by its object-id map. Render
 import TensorFlow next to it).
 """
 import argparse
-import os
 import sys
 
 import numpy as np
 
 from roboshape import envs
+from roboshape import fileio
 from roboshape.envs import ids
 
 
@@ -55,10 +55,7 @@ def save_sheet(frames, seeds, path: str, segmentation: bool) -> None:
         ax.set_title(f"seed {seed}" + (" seg" if segmentation and c % 2 else ""), fontsize=8)
       if c == 0:
         ax.set_ylabel(f"{task}\n{level}", fontsize=9)
-  fig.tight_layout()
-  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  fig.savefig(path, dpi=100)
-  plt.close(fig)
+  fileio.save_figure(fig, path, dpi=100)
 
 
 def main(argv=None) -> int:

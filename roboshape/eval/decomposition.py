@@ -9,7 +9,6 @@ cube, the target or bin and the distractors are separated rather than how the la
   fg_ari(segmentation, masks, background_ids=(0, 1)) -> float in [-1, 1] (nan when < 2 foreground pixels)
   matched_miou(segmentation, masks, background_ids=(0, 1)) -> float in [0, 1] (nan when no foreground object)
 """
-import os
 from typing import Optional, Sequence
 
 import numpy as np
@@ -128,10 +127,4 @@ def decomposition_figure(frames: np.ndarray, recon: np.ndarray, rgb: np.ndarray,
     axes[t, 0].set_ylabel(f"t={t}", fontsize=7)
   if title:
     fig.suptitle(title, fontsize=8)
-  fig.tight_layout()
-  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  try:
-    fileio.atomic_write_file(path, lambda f: fig.savefig(f, format="png", dpi=100))
-  finally:
-    plt.close(fig)
-  return path
+  return fileio.save_figure(fig, path, dpi=100)

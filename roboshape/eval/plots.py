@@ -1,7 +1,6 @@
 """Figures: the paper's overall figure (mean success rate per encoder and generalization level, averaged over
 tasks) and its per-task figure with the report's 95% intervals as error bars. Training curves of validation metrics
 are drawn by roboshape/train/history.py."""
-import os
 from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
@@ -49,19 +48,7 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   ax.set_title(title, fontsize=9)
   ax.legend(fontsize=7, frameon=False)
   ax.spines[["top", "right"]].set_visible(False)
-  return _save(fig, plt, path)
-
-
-def _save(fig, plt, path: str, rect=(0, 0, 1, 1)) -> str:
-  """Lays the figure out within `rect` (of the figure: left, bottom, right, top), writes it atomically to `path`
-  (its format from the extension) and closes it; returns `path`."""
-  fig.tight_layout(rect=rect)
-  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-  try:
-    fileio.atomic_write_file(path, lambda f: fig.savefig(f, format=os.path.splitext(path)[1][1:]))
-  finally:
-    plt.close(fig)
-  return path
+  return fileio.save_figure(fig, path)
 
 
 def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float, float]], tasks: Sequence[str],
@@ -100,4 +87,4 @@ def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float,
         handles.append(h)
         labels.append(l)
   fig.legend(handles, labels, fontsize=7, frameon=False, loc="center right")
-  return _save(fig, plt, path, rect=(0, 0, 1 - 0.8 / (3.2 * len(tasks) + 0.8), 1))
+  return fileio.save_figure(fig, path, rect=(0, 0, 1 - 0.8 / (3.2 * len(tasks) + 0.8), 1))

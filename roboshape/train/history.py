@@ -69,7 +69,7 @@ def metric_curve(history: Sequence[Dict], keys: Sequence[str], path: str, title:
     ax.grid(alpha=0.3)
     ax.spines[["top", "right"]].set_visible(False)
   fig.suptitle(title, fontsize=9)
-  return _save(fig, path)
+  return fileio.save_figure(fig, path)
 
 
 def overlay_curves(histories: Dict[str, Sequence[Dict]], key: str, path: str, title: str = "") -> str:
@@ -89,17 +89,4 @@ def overlay_curves(histories: Dict[str, Sequence[Dict]], key: str, path: str, ti
   ax.spines[["top", "right"]].set_visible(False)
   ax.legend(fontsize=7)
   ax.set_title(title, fontsize=8)
-  return _save(fig, path)
-
-
-def _save(fig, path: str) -> str:
-  """Lays out `fig`, writes it to `path` atomically (making its folder; the format from its extension) and closes
-  it; returns `path`."""
-  import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
-  fig.tight_layout()
-  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-  try:
-    fileio.atomic_write_file(path, lambda f: fig.savefig(f, format=os.path.splitext(path)[1][1:]))
-  finally:
-    plt.close(fig)
-  return path
+  return fileio.save_figure(fig, path)
