@@ -278,7 +278,8 @@ def train(config, workdir: str, feature_path: str, train_seed=None) -> dict:
 def _keep_interrupted(ckpt: Checkpointer, state, start: int) -> None:
   """After an interrupt (Ctrl-C, a grid stopped at the end of a session), a checkpoint of the steps done since the
   newest one, so the resume repeats none of them: batches and dropout are drawn from the step, so a run resumed
-  from any step ends where an uninterrupted one does."""
+  from any step ends where an uninterrupted one does. The validation history's train_seconds then leaves out the
+  interrupted attempt's steps after its last validation; the stage log (stages.json) counts every attempt."""
   ckpt.wait()
   step = int(state["step"])
   if step > start and step != ckpt.latest_step():
