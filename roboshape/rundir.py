@@ -244,6 +244,13 @@ def eval_dir(workdir: str) -> str:
   return os.path.join(workdir, "eval")
 
 
+def rollout_log(workdir: str, train_seed=None) -> str:
+  """<workdir>/eval/results.jsonl, the rollout log of the run's policy, or results_seed_<s>.jsonl for training seed s
+  of `policy.train_seeds`: one line per finished rollout."""
+  name = "results.jsonl" if train_seed is None else f"results_seed_{int(train_seed)}.jsonl"
+  return os.path.join(eval_dir(workdir), name)
+
+
 def videos_dir(workdir: str) -> str:
   return os.path.join(eval_dir(workdir), "videos")
 
@@ -255,6 +262,16 @@ def report_dir(workdir: str) -> str:
 def checkpoints(stage_dir: str) -> str:
   """The orbax checkpoints of a training stage's folder (pretrain_dir, policy_dir)."""
   return os.path.join(stage_dir, CHECKPOINTS)
+
+
+def saved_steps(stage_dir: str) -> list:
+  """The steps of a training stage's folder's checkpoints as their folders name them, oldest first (none when there
+  are none): a quick reading for progress reports, not a check that they restore (roboshape/checkpoint.py)."""
+  try:
+    names = os.listdir(checkpoints(stage_dir))
+  except OSError:
+    return []
+  return sorted(int(n) for n in names if n.isdigit())
 
 
 def grid_run_dir(workdir: str, task: str, column: str) -> str:

@@ -1,11 +1,14 @@
-"""Which runs of a workdir are done, running or pending, and how long each stage took.
+"""Which runs of a workdir are done, running or pending, how far an unfinished stage got, and how long each stage
+took.
 
   python -m roboshape.status WORKDIR          # a grid's workdir (configs/reproduce.py) or one run's
 
 Reads the workdir's config.json and each run's stage log (<run>/stages.json, written by roboshape/stages.py). A run
 is "done" when every stage it runs is done, "running" while a live process runs one of its stages, "stopped" when
 the process that ran a stage is gone before it finished (run the same command to resume), "skipped" when the grid
-skipped it (SKIPPED.json: a baseline without weights), and "pending" before any stage started.
+skipped it (SKIPPED.json: a baseline without weights), and "pending" before any stage started. A running or stopped
+training stage says which seed it is at and that seed's newest saved step ("running (seed 2/3 at 1500/5000)"), an
+evaluation how many rollouts its logs hold.
 """
 import os
 import sys
@@ -25,9 +28,43 @@ def _alive(pid) -> bool:
   return True
 
 
-def run_status(stages, run_dir: str) -> Dict:
+def _count_lines(path: str) -> int:
+  try:
+    with open(path) as f:
+      return sum(1 for line in f if line.strip())
+  except OSError:
+    return 0
+
+
+def _training_progress(config, stage_dir: str, stage: str) -> str:
+  """How far the seeds of a training stage are, from their newest saved checkpoints: "seed 2/3 at 1500/5000"
+  (the first seed not yet at its last step), or "all 3 seeds trained"."""
+  seeds, steps = rundir.train_seeds(config, stage), int(config[stage].train.steps)
+  for i, seed in enumerate(seeds):
+    saved = rundir.saved_steps(rundir.seed_dir(stage_dir, seed))
+    if not saved or saved[-1] < steps:
+      return f"seed {i + 1}/{len(seeds)} at {saved[-1] if saved else 0}/{steps}"
+  return f"all {len(seeds)} seeds trained"
+
+
+def progress(config, run_dir: str, stage: str) -> str:
+  """How far an unfinished stage of a run got, from what it saved: its training seeds' checkpoints (pretrain,
+  train_policy) or the rollouts in its logs (evaluate); "" for the other stages."""
+  if stage == "pretrain" and not config.pretrain.get("from_workdir"):
+    return _training_progress(config, rundir.pretrain_dir(run_dir, config.encoder), "pretrain")
+  if stage == "train_policy":
+    return _training_progress(config, rundir.policy_dir(run_dir), "policy")
+  if stage == "evaluate":
+    seeds = rundir.train_seeds(config)
+    total = len(seeds) * len(config.eval.levels) * int(config.eval.num_seeds) * int(config.eval.rollouts_per_seed)
+    return f"{sum(_count_lines(rundir.rollout_log(run_dir, s)) for s in seeds)}/{total} rollouts"
+  return ""
+
+
+def run_status(stages, run_dir: str, config=None) -> Dict:
   """{state, stages: {stage: seconds or state}, seconds, core_hours} of one run whose config runs `stages`; the
-  totals count a stage still running (or killed) up to its last beat (rundir.logged_time)."""
+  totals count a stage still running (or killed) up to its last beat (rundir.logged_time). With the run's
+  `config`, an unfinished stage's state says how far it got (`progress`)."""
   if os.path.exists(os.path.join(run_dir, rundir.SKIPPED_FILE)):
     return dict(state="skipped", stages={}, seconds=0.0, core_hours=0.0)
   log = rundir.read_stage_log(run_dir, strict=True)
@@ -41,7 +78,9 @@ def run_status(stages, run_dir: str) -> Dict:
     else:
       state = "pending"
     states.append(state)
-    per_stage[stage] = entry.get("seconds") if state == "done" else state
+    done_so_far = progress(config, run_dir, stage) if config is not None and state != "pending" else ""
+    per_stage[stage] = entry.get("seconds") if state == "done" else (
+        f"{state} ({done_so_far})" if done_so_far else state)
   if all(s == "done" for s in states):
     state = "done"
   elif "running" in states:
@@ -60,10 +99,10 @@ def workdir_status(workdir: str) -> List[Dict]:
   `run_status`'s fields."""
   config = rundir.load_config(workdir)
   if "grid" in config:
-    runs = [(t, e, sub.stages, d) for t, e, sub, d in grid.grid_configs(config, workdir)]
+    runs = list(grid.grid_configs(config, workdir))
   else:
-    runs = [(config.task, columns.of_config(config), config.stages, workdir)]
-  return [dict(task=t, encoder=e, run_dir=d, **run_status(tuple(stages), d)) for t, e, stages, d in runs]
+    runs = [(config.task, columns.of_config(config), config, workdir)]
+  return [dict(task=t, encoder=e, run_dir=d, **run_status(tuple(sub.stages), d, sub)) for t, e, sub, d in runs]
 
 
 def _duration(seconds) -> str:

@@ -584,7 +584,7 @@ def test_evaluate_each_training_seed_into_its_own_log_then_one_table(tmp_path):
                          fingerprint=f"policy{seed}", train_seed=seed,
                          videos_per_level=1 if i == 0 else 0)
   for seed in (0, 1):
-    logged = results_lib.read_log(closed_loop.log_path(workdir, seed))
+    logged = results_lib.read_log(rundir.rollout_log(workdir, seed))
     assert len(logged) == 4 and {r["train_seed"] for r in logged} == {seed}
   data = json.load(open(tmp_path / "eval" / "results.json"))
   assert len(data["rollouts"]) == 8

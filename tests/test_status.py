@@ -141,6 +141,32 @@ def test_status_of_a_grid_says_done_running_stopped_skipped_and_pending(tmp_path
   assert {r["state"] for r in status.workdir_status(workdir) if r["task"] == "pick"} == {"pending", "skipped"}
 
 
+def test_an_unfinished_stage_says_how_far_its_seeds_and_rollouts_got(tmp_path):
+  config = common.get_config("push", "savi", "tiny")
+  config.pretrain.train_seeds, config.policy.train_seeds = (0, 1), (0, 1, 2)
+  config.pretrain.train.steps, config.policy.train.steps = 40, 20
+  config.eval.levels, config.eval.num_seeds, config.eval.rollouts_per_seed = ("train", "L1"), 1, 2
+  run = str(tmp_path / "run")
+  for stage_dir, step in ((rundir.seed_dir(rundir.savi_dir(run), 0), 40), (rundir.seed_dir(rundir.savi_dir(run), 1),
+                                                                          30),
+                          (rundir.policy_dir(run, 0), 20), (rundir.policy_dir(run, 1), 10)):
+    os.makedirs(os.path.join(rundir.checkpoints(stage_dir), str(step)))
+    os.makedirs(os.path.join(rundir.checkpoints(stage_dir), f"{step + 10}.orbax-checkpoint-tmp-1"))  # half saved
+  assert status.progress(config, run, "pretrain") == "seed 2/2 at 30/40"
+  assert status.progress(config, run, "train_policy") == "seed 2/3 at 10/20"
+  os.makedirs(rundir.eval_dir(run))
+  for seed, rollouts in ((0, 4), (1, 1)):
+    with open(rundir.rollout_log(run, seed), "w") as f:
+      f.write("{}\n" * rollouts)
+  assert status.progress(config, run, "evaluate") == "5/12 rollouts"     # 3 policies x 2 levels x 1 seed x 2
+  assert status.progress(config, run, "cache") == ""
+  rundir.record_stage(run, "train_policy", "running")                    # this process: alive
+  assert status.run_status(("train_policy",), run, config)["stages"]["train_policy"] == "running (seed 2/3 at 10/20)"
+  os.makedirs(os.path.join(rundir.checkpoints(rundir.policy_dir(run, 1)), "20"))
+  os.makedirs(os.path.join(rundir.checkpoints(rundir.policy_dir(run, 2)), "20"))
+  assert status.progress(config, run, "train_policy") == "all 3 seeds trained"
+
+
 def test_status_command_prints_the_table_and_refuses_a_folder_without_a_run(tmp_path):
   _, workdir = _grid_workdir(tmp_path)
   env = dict(os.environ, JAX_PLATFORMS="cpu")

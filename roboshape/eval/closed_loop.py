@@ -291,16 +291,10 @@ def run(config, workdir: str) -> None:
              videos_per_level=config.eval.videos_per_level if i == 0 else 0, slot_video=slot_video)
 
 
-def log_path(workdir: str, train_seed=None) -> str:
-  """The rollout log of the run's policy (of training seed `train_seed` with policy.train_seeds)."""
-  name = "results.jsonl" if train_seed is None else f"results_seed_{int(train_seed)}.jsonl"
-  return os.path.join(rundir.eval_dir(workdir), name)
-
-
 def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], worker_error=Exception,
              fingerprint: str = "", train_seed=None, videos_per_level: Optional[int] = None,
              slot_video: Optional[Callable[[np.ndarray], np.ndarray]] = None) -> Dict[str, str]:
-  """Runs the rollouts not yet in the policy's log (`log_path`), then writes all outputs; returns their paths.
+  """Runs the rollouts not yet in the policy's log (`rundir.rollout_log`), then writes all outputs; returns their paths.
 
   `make_pool(level)` returns a context manager giving a pool (see `run_rollouts`); `fingerprint` identifies the
   policy, so a log of another policy is set aside rather than resumed. With policy.train_seeds, `train_seed` names
@@ -310,7 +304,7 @@ def evaluate(config, workdir: str, policy, make_pool: Callable[[str], object], w
   """
   plan = rollout_plan(tuple(config.eval.levels), config.eval.num_seeds, config.eval.rollouts_per_seed,
                       config.eval.seed_offset)
-  log = results_lib.ResultLog(log_path(workdir, train_seed), fingerprint)
+  log = results_lib.ResultLog(rundir.rollout_log(workdir, train_seed), fingerprint)
   if videos_per_level is None:
     videos_per_level = config.eval.videos_per_level
   recorder = Recorder(config, log, rundir.videos_dir(workdir), slot_video, train_seed)
@@ -442,6 +436,6 @@ def merged_records(config, workdir: str, plan: Sequence[Rollout], log: results_l
   keys = {(r.level, r.seed) for r in plan}
   records = []
   for seed in rundir.train_seeds(config):
-    logged = log.records if seed == train_seed else results_lib.read_log(log_path(workdir, seed))
+    logged = log.records if seed == train_seed else results_lib.read_log(rundir.rollout_log(workdir, seed))
     records += [r for r in logged if results_lib.key(r) in keys]
   return records
