@@ -53,6 +53,9 @@ def write_video(frames: np.ndarray, stem: str, fps: int = 20, scale: int = 4,
   Each file is written under a temporary name and renamed into place, so a video is either whole or absent.
   A format whose writer is unavailable (e.g. no ffmpeg) is skipped with a warning rather than failing the run.
   """
+  # imageio-ffmpeg starts ffmpeg with preexec_fn=os.setpgrp (to keep Ctrl-C from it) unless this is set: Python run
+  # between fork and exec, in a process holding JAX's threads, can deadlock. An interrupted video is discarded anyway.
+  os.environ.setdefault("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", "1")
   import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
   frames = upscale(np.asarray(frames, np.uint8), scale)
   # H.264 wants even sizes that are multiples of 16 for most players: pad with white.
