@@ -145,16 +145,18 @@ def main(argv) -> int:
     print("usage: python -m roboshape.lanes RUN_DIR CORES PARENT_PID < pickled (run, config) (started by "
           "roboshape.lanes.run_parallel)", file=sys.stderr)
     return 2
+  from roboshape import cli  # pylint: disable=import-outside-toplevel
   child_setup({int(c) for c in argv[2].split(",")}, int(argv[3]))
+  devices = cli.host_device_per_core(override=True)   # this lane's cores (pinned just now), before JAX starts
   run, config = pickle.load(sys.stdin.buffer)     # imports run's module (roboshape.stages for a grid)
-  print(f"[roboshape] {config.name} on cores {sorted(os.sched_getaffinity(0))}, pid {os.getpid()}", flush=True)
+  print(f"[roboshape] {config.name} on cores {sorted(os.sched_getaffinity(0))} ({devices} JAX CPU device(s)), pid "
+        f"{os.getpid()}", flush=True)
   try:
     run(config, argv[1])
   except UserError as e:
     print(f"roboshape: error: {e}", file=sys.stderr, flush=True)
     return 2
   except KeyboardInterrupt as e:
-    from roboshape import cli  # pylint: disable=import-outside-toplevel
     print("roboshape: interrupted; run the same command to resume", file=sys.stderr, flush=True)
     return cli.interrupt_code(e)
   return 0
@@ -162,6 +164,5 @@ def main(argv) -> int:
 
 if __name__ == "__main__":
   from roboshape import cli  # pylint: disable=ungrouped-imports
-  cli.host_device_per_core(override=True)   # this lane's cores, not the parent's count it inherited
   cli.install_signal_handlers()             # SIGTERM (its parent's death, or a kill) stops it as Ctrl-C would
   cli.exit_process(main(sys.argv))

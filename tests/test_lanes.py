@@ -50,6 +50,8 @@ def test_children_run_pinned_and_report_their_exit_codes(tmp_path):
   for name in ("a", "bad"):
     line = next(l for l in open(tmp_path / name / lanes.LOG_FILE) if " on cores " in l)
     pinned[name] = line.split(" on cores ")[1].split("]")[0]
+    cores = len(pinned[name].strip("[").split(","))
+    assert f"({cores} JAX CPU device(s))" in line                 # one device per core it was pinned to
   if len(os.sched_getaffinity(0)) >= 2:                            # they ran at once, each on its own core
     assert pinned["a"] != pinned["bad"] and "," not in pinned["a"] + pinned["bad"]
 
