@@ -8,15 +8,15 @@ each lane's child makes its own cores its devices.
 
   run_parallel(run, jobs, lanes, on_done)   # jobs: (name, config, run_dir); on_done(job, exit code, last line)
 
-Each job is a child `python -m roboshape.lanes RUN_DIR CORES PARENT_PID`, which pins itself to CORES (`child_setup`),
-reads `run` and its config (pickled) on stdin and calls `run(config, RUN_DIR)`. `run` is a module-level function, pickled by name: the child imports its module when
-it unpickles it, so this module imports none of its callers. A grid passes `roboshape.stages.run`, so each run
-resumes and fails exactly as `launch.py` would; everything it prints goes to RUN_DIR/log.txt (appended across
-resumes). Lane i owns the cores cores[i::lanes] of this process's affinity, and a job's simulator workers inherit
-them. Ctrl-C or SIGTERM interrupts every child (each stops the way an interrupted run stops and resumes the same
-way) and re-raises here; a parent that dies any other way (SIGKILL) takes its children with it (`child_setup`).
-Each child holds its run's workdir (rundir.hold_workdir), so a second grid on the same runs stops in one line
-instead of running them twice.
+Each job is a child `python -m roboshape.lanes RUN_DIR CORES PARENT_PID`, which pins itself to CORES
+(`child_setup`), reads `run` and its config (pickled) on stdin and calls `run(config, RUN_DIR)`. `run` is a
+module-level function, pickled by name: the child imports its module when it unpickles it, so this module imports
+none of its callers. A grid passes `roboshape.stages.run`, so each run resumes and fails exactly as `launch.py`
+would; everything it prints goes to RUN_DIR/log.txt (appended across resumes). Lane i owns the cores cores[i::lanes]
+of this process's affinity, and a job's simulator workers inherit them. Ctrl-C or SIGTERM interrupts every child
+(each stops the way an interrupted run stops and resumes the same way) and re-raises here; a parent that dies any
+other way (SIGKILL) takes its children with it (`child_setup`). Each child holds its run's workdir
+(rundir.hold_workdir), so a second grid on the same runs stops in one line instead of running them twice.
 """
 import ctypes
 import os

@@ -299,9 +299,9 @@ def read_stage_log(workdir: str, strict: bool = False) -> dict:
   """{stage: {state: "running" | "done", pid, started, finished, seconds, core_seconds, cores}} of a run ({} when
   none ran yet).
 
-  `started` is its first attempt's start, `seconds` the wall time of the stage's attempts, summed over resumes; `core_seconds` the same, each attempt's
-  wall time times the cores it held (`cores`: its process's CPU affinity, so a grid lane's one core, a collection's
-  whole machine). An attempt that never finished (killed with its session) counts up to its last beat
+  `started` is its first attempt's start, `seconds` the wall time of the stage's attempts, summed over resumes;
+  `core_seconds` the same, each attempt's wall time times the cores it held (`cores`: its process's CPU affinity, so
+  a grid lane's one core, a collection's whole machine). An attempt that never finished (killed with its session) counts up to its last beat
   (`stage_clock`) once the next attempt starts. A damaged log reads as {} (a run starts it afresh: it records
   times, not results), or with `strict` (the tools that report it) is a UserError naming the file."""
   path = stage_log_path(workdir)
@@ -350,7 +350,8 @@ def record_stage(workdir: str, stage: str, state: str, seconds: float = 0.0) -> 
     seconds, core = logged_time(entry)              # with the attempt before this one, if it never finished
     entry.update(seconds=round(seconds, 1), core_seconds=round(core, 1))
     clock = time.time()
-    entry.update(state="running", pid=os.getpid(), started=entry.get("started", now), cores=_held_cores(), attempt=clock, beat=clock)
+    entry.update(state="running", pid=os.getpid(), started=entry.get("started", now), cores=_held_cores(),
+                 attempt=clock, beat=clock)
   else:
     before, core = logged_time(dict(entry, state="done"))
     entry.update(state="done", finished=now, seconds=round(before + seconds, 1),
