@@ -126,6 +126,10 @@ def run_grid(config, workdir: str) -> None:
   with rundir.hold_workdir(workdir):
     with disk_full_is_one_line("the grid", workdir):
       rundir.save_config(config, workdir)
+      if config.grid.get("publish"):
+        from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+        publish.record_grid(config.grid.publish, dict.fromkeys(t for t, _, _, _ in runs),
+                            dict.fromkeys(c for _, c, _, _ in runs))
     lanes = int(config.grid.get("lanes", 1))
     if lanes > 1:
       _run_lanes(config, runs, lanes)
@@ -181,18 +185,23 @@ def _run_lanes(config, runs, lanes: int) -> None:
 def _finish_run(config, task: str, column: str, sub, sub_dir: str, error) -> None:
   """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi
   (Kind.baseline); a run that ended well loses an old SKIPPED.json and is published when the grid publishes."""
+  from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+  dest = config.grid.get("publish")
   skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
   if error is not None:
     if not encoders.get(sub.encoder).baseline:
       raise UserError(error)
     os.makedirs(sub_dir, exist_ok=True)
     fileio.atomic_write_json(skipped, {"reason": error})
+    if dest:
+      publish.record_skip(dest, task, column, error)
     print(f"[roboshape] skipped {task} x {column}: {error}", flush=True)
     return
   if os.path.exists(skipped):
     os.remove(skipped)
-  if config.grid.get("publish") and "evaluate" in sub.stages:
-    from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+  if dest:
+    publish.record_skip(dest, task, column, None)
+  if dest and "evaluate" in sub.stages:
     print(f"[roboshape] published {task} x {column} to {publish.publish(sub, sub_dir, config.grid.publish)}",
           flush=True)
 

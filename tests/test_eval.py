@@ -483,8 +483,8 @@ def test_report_over_published_runs_reads_back_each_run_and_marks_the_missing_ce
   assert paths["report.md"] == os.path.join(root, "report", "report.md")
   md = open(paths["report.md"]).read()
   assert "| L1 | - | **0.50** ± 0.00 |" in open(paths["table_pick.md"]).read()
-  assert "- skipped: SAVi on pick: not published yet (no pick_savi/results.csv)" in md
-  assert "- skipped: State on push: not published yet (no push_state/results.csv)" in md
+  assert "## pick" in md and md.split("## pick")[1].count("- not published yet: SAVi\n") == 1
+  assert "- not published yet: State\n" in md.split("## pick")[0].split("## push")[1]
   assert os.path.getsize(paths["overall.png"]) > 0
   # A run with training seeds beside the others; built twice, the report does not read its own pooled results.csv
   # (report/, where rows with and without a training seed now meet) as one more run.
@@ -692,6 +692,28 @@ def _published_cell(root, name: str, identity=None) -> None:
   if identity:
     with open(os.path.join(root, name, rundir.DATASET_FILE), "w") as f:
       json.dump({"identity": identity, "name": f"roboshape_{task}"}, f)
+
+
+def test_the_published_report_lists_its_grids_cells_not_published_yet_and_those_it_skipped(tmp_path):
+  root = str(tmp_path / "results")
+  _published_cell(root, "push_ae", "aaaa")
+  publish.record_grid(root, ("push", "pick"), ("savi", "ae", "r3m"))
+  publish.record_skip(root, "push", "r3m", "R3M weights not found: see README.md")
+  publish.record_skip(root, "pick", "r3m", "R3M weights not found: see README.md")
+  publish.record_skip(root, "pick", "r3m", None)                     # ran since: no longer skipped
+  publish.record_grid(root, ("push", "pick"), ("savi", "ae", "r3m"))   # the grid started again: the skip stays
+  assert publish.grid_record(root) == dict(tasks=["push", "pick"], columns=["savi", "ae", "r3m"],
+                                           skipped={"push_r3m": "R3M weights not found: see README.md"})
+  paths = report.build_published_report(root)
+  md = open(paths["report.md"]).read()
+  push, pick = md.split("## push\n")[1].split("## pick\n")
+  assert open(paths["table_pick.md"]).read().startswith("| | R3M | AE | SAVi |")
+  assert "- not published yet: SAVi\n" in push and "- skipped: R3M on push: R3M weights not found: see README.md" in push
+  assert "- not published yet: R3M, AE, SAVi\n" in pick and "skipped" not in pick.split("The paper's")[0]
+  with open(os.path.join(root, publish.GRID_FILE), "w") as f:
+    f.write("{")
+  with pytest.raises(UserError, match=r"grid\.json is damaged \(JSONDecodeError\): delete it"):
+    report.build_published_report(root)
 
 
 def test_the_published_report_refuses_cells_of_one_task_trained_on_different_datasets(tmp_path, capsys):

@@ -9,6 +9,7 @@ from configs import common
 from configs import reproduce
 from roboshape import lanes
 from roboshape import stages
+from roboshape.eval import publish
 from roboshape.errors import UserError
 
 
@@ -59,11 +60,14 @@ def test_children_run_pinned_and_report_their_exit_codes(tmp_path):
 def test_a_grid_in_lanes_skips_a_failed_baseline_and_stops_for_savi(tmp_path):
   config = reproduce.get_config("tiny")
   config.grid.encoders, config.grid.lanes, config.stages = ("savi", "r3m"), 2, ("cache",)
+  config.grid.publish = str(tmp_path / "published")
   with pytest.raises(UserError, match=r"grid runs failed: push x savi \(.+\).*log\.txt"):
     stages.run(config, str(tmp_path / "grid"))    # no dataset: each run's cache stage fails with one line
   reason = json.load(open(tmp_path / "grid" / "push_r3m" / "SKIPPED.json"))["reason"]
   assert reason and "\n" not in reason and not reason.startswith("roboshape: error")
   assert not (tmp_path / "grid" / "push_savi" / "SKIPPED.json").exists()
+  assert publish.grid_record(config.grid.publish) == dict(tasks=["push"], columns=["savi", "r3m"],
+                                                          skipped={"push_r3m": reason})
 
 
 def _wait_for(predicate, seconds: float = 20.0) -> bool:

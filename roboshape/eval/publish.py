@@ -2,6 +2,7 @@
 
   publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<column>/
   check_datasets({(task, column): folder})   # UserError when cells of one task name different datasets
+  record_grid(dest_root, tasks, columns); record_skip(dest_root, task, column, reason); grid_record(dest_root)
 
 The folder is named after the run's column (roboshape/encoders/columns.py): its encoder, with its options
 ("push_savi+proprio").
@@ -21,6 +22,10 @@ its evaluation is complete. What is copied, under fixed names (files the run doe
                                    the run that pretrained it: pretrain.from_workdir)
   videos/*.mp4                     the rollout videos the evaluation recorded (a few per level)
 
+A grid that publishes also keeps <dest_root>/grid.json: its tasks and columns, and the one-line reason of each cell
+it skipped (a baseline without weights), so the report over the folder lists the cells not published yet and the
+skipped ones with their reasons while the grid is part way.
+
 Files of an earlier publication of the same run that this one does not replace are removed, so the folder always
 holds one run; a README.md written there by hand is kept while it is this run's (the folder's config.json is the
 run's, or there is none yet), and goes with the files of another run that the folder held before.
@@ -38,6 +43,7 @@ from roboshape.encoders import columns
 from roboshape.errors import UserError
 
 KEPT = ("README.md",)
+GRID_FILE = "grid.json"    # <dest_root>/grid.json: {"tasks", "columns", "skipped": {"<task>_<column>": reason}}
 DATASET = rundir.DATASET_FILE
 EVAL_FILES = (rundir.RESULTS_CSV, "table.md", "table.tex", "success_by_level.png", "milestones.md")
 
@@ -126,3 +132,41 @@ def check_datasets(cells: Mapping[Tuple[str, str], str]) -> None:
       root = os.path.dirname(next(iter(found.values()))[0])
       raise UserError(f"the {task} cells were trained on different datasets ({groups}): publish every cell of a "
                       f"task from runs on one dataset (one grid), or move the odd cells out of {root}.")
+
+
+def grid_record(dest_root: str) -> Dict:
+  """<dest_root>/grid.json as {"tasks": [...], "columns": [...], "skipped": {"<task>_<column>": reason}}, or the
+  empty record when no grid published there."""
+  path = os.path.join(dest_root, GRID_FILE)
+  if not os.path.isfile(path):
+    return dict(tasks=[], columns=[], skipped={})
+  try:
+    with open(path, encoding="utf-8") as f:
+      record = json.load(f)
+    return dict(tasks=list(record["tasks"]), columns=list(record["columns"]), skipped=dict(record["skipped"]))
+  except (OSError, ValueError, KeyError, TypeError) as e:
+    raise UserError(f"{path} is damaged ({type(e).__name__}): delete it; the grid writes it again when it "
+                    "starts.") from None
+
+
+def record_grid(dest_root: str, tasks, grid_columns) -> None:
+  """Notes in grid.json the tasks and columns of the grid publishing into `dest_root`, keeping the skips noted."""
+  record = grid_record(dest_root)
+  os.makedirs(dest_root, exist_ok=True)
+  fileio.atomic_write_json(os.path.join(dest_root, GRID_FILE),
+                           dict(tasks=list(tasks), columns=list(grid_columns), skipped=record["skipped"]))
+
+
+def record_skip(dest_root: str, task: str, column: str, reason) -> None:
+  """Notes in grid.json that the grid skipped the cell, with its one-line `reason`; None: it ran (no longer
+  skipped)."""
+  record = grid_record(dest_root)
+  key = f"{task}_{column}"
+  if reason is None and key not in record["skipped"]:
+    return
+  if reason is None:
+    del record["skipped"][key]
+  else:
+    record["skipped"][key] = str(reason)
+  os.makedirs(dest_root, exist_ok=True)
+  fileio.atomic_write_json(os.path.join(dest_root, GRID_FILE), record)

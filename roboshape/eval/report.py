@@ -114,8 +114,9 @@ def cell_block(folder: str) -> str:
 
 def build_published_report(root: str) -> Dict[str, str]:
   """The report over the runs published under `root` (<root>/<task>_<encoder>/results.csv, e.g. results/small),
-  written into <root>/report/; every task x encoder pair without a published run is marked missing. Rewrites the
-  summary block of each published run's README.md."""
+  written into <root>/report/; every task x encoder pair without a published run is marked missing (with the
+  cells of the grid that publishes there, publish.grid_record: not published yet, or skipped with its reason).
+  Rewrites the summary block of each published run's README.md."""
   if not os.path.isdir(root):
     raise UserError(f"{root} is not a folder: give the folder runs are published to (e.g. results/small).")
   found, out_dir = {}, rundir.report_dir(root)
@@ -131,11 +132,13 @@ def build_published_report(root: str) -> Dict[str, str]:
   publish.check_datasets({key: run["folder"] for key, run in found.items()})   # one dataset per task, or nothing
   for run in found.values():       # every run read back before any README is rewritten
     readme.write(run["folder"], run, published_config(run["folder"]))
-  tasks = [t for t in TASKS if t in {t for t, _ in found}] + sorted({t for t, _ in found} - set(TASKS))
-  encoders = list(dict.fromkeys(e for _, e in found))
+  grid = publish.grid_record(root)      # the publishing grid's cells: the missing ones are listed too
+  named = {t for t, _ in found} | set(grid["tasks"])
+  tasks = [t for t in TASKS if t in named] + sorted(named - set(TASKS))
+  encoders = list(dict.fromkeys(list(grid["columns"]) + [e for _, e in found]))
   runs = [(t, e, os.path.join(root, f"{t}_{e}")) for t in tasks for e in encoders]
-  loaded = {(t, e): found.get((t, e), dict(skipped=f"not published yet (no {t}_{e}/{rundir.RESULTS_CSV})"))
-            for t, e, _ in runs}
+  loaded = {(t, e): found.get((t, e)) or (dict(skipped=grid["skipped"][f"{t}_{e}"]) if f"{t}_{e}" in grid["skipped"]
+                                         else dict(skipped="not published yet", pending=True)) for t, e, _ in runs}
   return write_report(runs, loaded, list(LEVEL_NAMES), out_dir)
 
 
@@ -178,10 +181,14 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
     fileio.atomic_write_text(paths[f"table_{task}.md"], md_table)
     fileio.atomic_write_text(paths[f"table_{task}.tex"], tex)
     md += [f"## {task}", "", md_table]
+    pending = [tables.encoder_name(e) for e in encoders if loaded.get((task, e), {}).get("pending")]
+    if pending:
+      md.append(f"- not published yet: {', '.join(pending)}")
     for encoder in encoders:
       r = loaded.get((task, encoder))
       if r is not None and "skipped" in r:
-        md.append(f"- skipped: {tables.encoder_name(encoder)} on {task}: {r['skipped']}")
+        if not r.get("pending"):
+          md.append(f"- skipped: {tables.encoder_name(encoder)} on {task}: {r['skipped']}")
       elif r is not None:
         crashed = sum(row["crashed"] for row in r["summary"])
         if crashed:
