@@ -17,6 +17,7 @@ from typing import Dict, List
 from roboshape import grid
 from roboshape import rundir
 from roboshape.encoders import columns
+from roboshape.eval import results as results_lib
 from roboshape.errors import UserError
 
 
@@ -26,14 +27,6 @@ def _alive(pid) -> bool:
   except (OSError, TypeError, ValueError):
     return False
   return True
-
-
-def _count_lines(path: str) -> int:
-  try:
-    with open(path) as f:
-      return sum(1 for line in f if line.strip())
-  except OSError:
-    return 0
 
 
 def _training_progress(config, stage_dir: str, stage: str) -> str:
@@ -57,7 +50,7 @@ def progress(config, run_dir: str, stage: str) -> str:
   if stage == "evaluate":
     seeds = rundir.train_seeds(config)
     total = len(seeds) * len(config.eval.levels) * int(config.eval.num_seeds) * int(config.eval.rollouts_per_seed)
-    return f"{sum(_count_lines(rundir.rollout_log(run_dir, s)) for s in seeds)}/{total} rollouts"
+    return f"{sum(len(results_lib.read_log(rundir.rollout_log(run_dir, s))) for s in seeds)}/{total} rollouts"
   return ""
 
 

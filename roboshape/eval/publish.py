@@ -151,10 +151,7 @@ def grid_record(dest_root: str) -> Dict:
 
 def record_grid(dest_root: str, tasks, grid_columns) -> None:
   """Notes in grid.json the tasks and columns of the grid publishing into `dest_root`, keeping the skips noted."""
-  record = grid_record(dest_root)
-  os.makedirs(dest_root, exist_ok=True)
-  fileio.atomic_write_json(os.path.join(dest_root, GRID_FILE),
-                           dict(tasks=list(tasks), columns=list(grid_columns), skipped=record["skipped"]))
+  _write_grid(dest_root, dict(tasks=list(tasks), columns=list(grid_columns), skipped=grid_record(dest_root)["skipped"]))
 
 
 def record_skip(dest_root: str, task: str, column: str, reason) -> None:
@@ -168,5 +165,9 @@ def record_skip(dest_root: str, task: str, column: str, reason) -> None:
     del record["skipped"][key]
   else:
     record["skipped"][key] = str(reason)
+  _write_grid(dest_root, record)
+
+
+def _write_grid(dest_root: str, record: Dict) -> None:
   os.makedirs(dest_root, exist_ok=True)
   fileio.atomic_write_json(os.path.join(dest_root, GRID_FILE), record)
