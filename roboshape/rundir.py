@@ -49,6 +49,7 @@ RESULTS_CSV = "results.csv"        # <eval_dir>/results.csv (and a published run
 RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run working in the workdir (`hold_workdir`)
 SELECTION_FILE = "selected.json"   # <encoder>/selected.json: the seed of pretrain.train_seeds pretraining selected
 DATASET_FILE = "dataset.json"      # <workdir>/dataset.json (and a published run's): its dataset's identity
+FIGURES_DIR = "figures"            # <encoder>/[seed_<s>/]figures/step_<n>.png: pretraining's validation figures
 
 # Fields that moved, old dotted name -> new: the pretraining settings SAVi and the AE share left the savi section.
 RENAMED = {

@@ -242,6 +242,29 @@ def test_publish_copies_every_training_seeds_validation_curve(tmp_path):
       assert f.read() == f"[{seed}]"
 
 
+def test_publish_takes_the_selected_pretraining_seeds_curve_and_last_figure(tmp_path):
+  config, workdir = _finished_run(tmp_path)
+  savi_dir = rundir.savi_dir(workdir)
+  with open(rundir.selection_path(savi_dir), "w") as f:
+    json.dump({"selected_seed": 1, "metric": "fg_ari", "seeds": [{"seed": 0}, {"seed": 1}]}, f)
+  for seed in (0, 1):
+    figures = os.path.join(rundir.seed_dir(savi_dir, seed), rundir.FIGURES_DIR)
+    os.makedirs(figures)
+    for step in (500, 8000, 10000):
+      with open(os.path.join(figures, f"step_{step:07d}.png"), "w") as f:
+        f.write(f"seed {seed} step {step}")
+    with open(os.path.join(rundir.seed_dir(savi_dir, seed), "val_metrics.json"), "w") as f:
+      f.write(f"[{seed}]")
+  dest = publish.publish(config, workdir, str(tmp_path / "results"))
+  with open(os.path.join(dest, "savi_selected_step_0010000.png")) as f:
+    assert f.read() == "seed 1 step 10000"
+  with open(os.path.join(dest, "savi_selected_val_metrics.json")) as f:
+    assert f.read() == "[1]"
+  assert sorted(n for n in os.listdir(dest) if n.startswith("savi_")) == [
+      "savi_selected.json", "savi_selected_step_0010000.png", "savi_selected_val_metrics.json",
+      "savi_val_metrics.json"]
+
+
 def test_publish_refuses_a_run_without_evaluation_results_and_writes_nothing(tmp_path):
   config, workdir = _finished_run(tmp_path, "state")
   os.remove(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE))

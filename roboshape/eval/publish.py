@@ -19,7 +19,10 @@ its evaluation is complete. What is copied, under fixed names (files the run doe
   policy_val_metrics.json/.png     the policy's validation curve (with policy.train_seeds, one per seed s:
                                    policy_seed_<s>_val_metrics.json/.png)
   <encoder>_val_metrics.json/.png  the encoder's pretraining curve (savi, ae), and its seed selection files (from
-                                   the run that pretrained it: pretrain.from_workdir)
+                                   the run that pretrained it: pretrain.from_workdir); with pretraining seeds, the
+                                   selected seed's curve as <encoder>_selected_val_metrics.json/.png
+  <encoder>_[selected_]step_<n>.png  the last figure the encoder's pretraining drew (SAVi: its slot decomposition
+                                   of validation frames), of the selected seed where there are seeds
   videos/*.mp4                     the rollout videos the evaluation recorded (a few per level)
 
 A grid that publishes also keeps <dest_root>/grid.json: its tasks and columns, and the one-line reason of each cell
@@ -60,6 +63,14 @@ def planned(config, workdir: str) -> List[tuple]:
   encoder_dir = rundir.pretrain_dir(rundir.pretrained_workdir(config, workdir), config.encoder)
   for path in sorted(glob.glob(os.path.join(encoder_dir, "*.json")) + glob.glob(os.path.join(encoder_dir, "*.png"))):
     pairs.append((path, f"{config.encoder}_{os.path.basename(path)}"))
+  selection = rundir.load_selection(encoder_dir)
+  kept, prefix = encoder_dir, f"{config.encoder}_"
+  if selection is not None:
+    kept, prefix = rundir.seed_dir(encoder_dir, selection["selected_seed"]), f"{config.encoder}_selected_"
+    pairs += [(os.path.join(kept, f"val_metrics{ext}"), f"{prefix}val_metrics{ext}") for ext in (".json", ".png")]
+  figures = sorted(glob.glob(os.path.join(kept, rundir.FIGURES_DIR, "*.png")))
+  if figures:
+    pairs.append((figures[-1], prefix + os.path.basename(figures[-1])))
   for path in sorted(glob.glob(os.path.join(rundir.videos_dir(workdir), "*.mp4"))):
     pairs.append((path, os.path.join("videos", os.path.basename(path))))
   return [(src, name) for src, name in pairs if os.path.isfile(src)]

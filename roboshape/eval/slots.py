@@ -13,6 +13,7 @@ from typing import Callable, Dict, Optional, Sequence
 import jax
 import numpy as np
 
+from roboshape import rundir
 from roboshape.envs import ids
 from roboshape.eval import decomposition
 from roboshape.models import savi
@@ -65,9 +66,13 @@ def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str,
   each evaluation in <root>/figures/step_<step>.png."""
   ec, own = config.pretrain.eval, config.savi.eval
   decompose = functools.partial(savi.decompose, model)
+
+  def figure(step):
+    return os.path.join(root, rundir.FIGURES_DIR, f"step_{step:07d}.png")
+
   return pretrain.Validation(
       run=lambda params, step: evaluate(decompose, params, episodes[:ec.episodes], ec.frames, own.background_ids,
-                                        model.input_pool, os.path.join(root, "figures", f"step_{step:07d}.png"),
+                                        model.input_pool, figure(step),
                                         own.figure_frames, f"{config.name} step {step}"),
       keys=("fg_ari", "fg_ari_frames", "miou"), ylim=(None, 1.0),
       describe=lambda r: (f"val FG-ARI {r['fg_ari']:.3f} (per frame {r['fg_ari_frames']:.3f}) mIoU "
