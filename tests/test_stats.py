@@ -146,7 +146,9 @@ def test_the_verdict_says_supports_contradicts_or_cannot_decide_from_the_cells()
   # place: +0.5 on 2 of 40 start states, so the bootstrap's variance of the difference is 0.011875 * 39 / 40 / 40
   # and 1.96 of its sd falls below 0.025 at 1.96^2 * 0.011875 * 39 / 40 / 0.025^2 = 71.2 start states (the
   # resamples' own variance, seeded, sets the last digit)
-  assert "place, SAVi − AE: +0.03 [+0.00, +0.06]†: cannot decide; if the difference held, it would be decided with " \
+  # (SAVi 0.50, AE (0.5 + 0.45) / 2, which is 0.47499... in floating point)
+  assert "place, SAVi − AE: +0.03 [+0.00, +0.06]† (SAVi 0.50, AE 0.47 over the levels): cannot decide; if the " \
+      "difference held, it would be decided with " \
       "about 71 rollouts per level per training seed (now 40; at least, as the variation between training seeds " \
       "is not counted)." in flat
   assert "it would be decided with about" in claim2.split("place, ")[1]
@@ -187,6 +189,11 @@ def test_the_published_report_prints_intervals_comparisons_robustness_the_figure
   assert "- the paper's SAVi column has no cell here" not in md
   assert "| SAVi − AE |  |  | +0.62 [" in md           # (0.8 + 0.5) / 1.6 - (0.1 + 0.2) / 1.6
   assert "So this table supports claim 1 on push." in md and "So this table supports claim 2 on push." in md
+  # each one's success over the levels beside the difference, and the control's: (0.8 + 0.8 + 0.5) / 3 = 0.70,
+  # (0.8 + 0.1 + 0.2) / 3 = 0.37, objects 0.50
+  assert "push, SAVi − AE: +0.33 [" in md and "(SAVi 0.70, AE 0.37 over the levels): supports." in md
+  assert "On push the ground-truth object tokens (the control) succeed 0.50 over the levels, SAVi − Objects +0.20 [" \
+      in md
   assert os.path.getsize(root / "report" / "success_by_level.png") > 0
   # the same cells give the same report
   assert report.main(["report", str(root)]) == 0 and (root / "report" / "report.md").read_text() == md

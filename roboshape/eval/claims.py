@@ -9,8 +9,9 @@ robustness, its success at a shift level (and averaged over the shift levels) di
 level; and SAVi's robustness minus each global encoder's. The tables render them; `verdict` reads the claims off
 them, per task and global encoder, by which side of 0 the interval lies:
 
-  claim 1: SAVi's success averaged over the levels minus the other's; claim 2: SAVi's robustness over the shift
-  levels (averaged) minus the other's.
+  claim 1: SAVi's success averaged over the levels minus the other's (each one's success beside it, and the
+  ground-truth object tokens' where that control ran: what a perfect decomposition reaches); claim 2: SAVi's
+  robustness over the shift levels (averaged) minus the other's.
   above 0: supports; below 0: contradicts; holding 0 or undefined: cannot decide, with how many more rollouts or
   training seeds would decide it if the difference held (stats.needed), or why no number would.
 
@@ -189,9 +190,16 @@ def _names(items: Sequence[str]) -> str:
   return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
+def _level_mean(a: Answer, task: str, encoder: str, levels: Sequence[str]) -> float:
+  """The encoder's success pooled over `levels` (every level of a cell has as many rollouts)."""
+  return float(np.mean([a.success[(task, encoder, level)].value for level in levels]))
+
+
 def _claim1(a: Answer, task: str, other: str) -> Tuple[int, str]:
   e, name = a.pairs[(task, other, LEVELS_MEAN)], tables.encoder_name(other)
-  text = f"{task}, SAVi − {name}: {interval(e, signed=True)}: {OUTCOMES[e.side]}"
+  levels = [l for l in a.levels if (task, other, l) in a.pairs]
+  means = f"SAVi {_level_mean(a, task, OBJECT_CENTRIC, levels):.2f}, {name} {_level_mean(a, task, other, levels):.2f}"
+  text = f"{task}, SAVi − {name}: {interval(e, signed=True)} ({means} over the levels): {OUTCOMES[e.side]}"
   if e.side == 0:
     if _never_succeeds(a.cells[(task, OBJECT_CENTRIC)]) and _never_succeeds(a.cells[(task, other)]):
       text += "; neither succeeds in any rollout, so no number of rollouts separates them"
@@ -220,6 +228,17 @@ def _claim2(a: Answer, task: str, other: str) -> Tuple[int, str]:
                                              "successes than here (better policies, or many more rollouts)")
 
 
+def _control(a: Answer, task: str) -> str:
+  """A sentence on what the ground-truth object tokens reach on `task` beside SAVi, or "" without that cell: the
+  success an object-centric policy reaches from a perfect decomposition, against which SAVi's is read."""
+  levels = [l for l in a.levels if (task, CONTROLS[0], l) in a.pairs]
+  if not levels:
+    return ""
+  return (f"On {task} the ground-truth object tokens (the control) succeed "
+          f"{_level_mean(a, task, CONTROLS[0], levels):.2f} over the levels, SAVi − Objects "
+          f"{interval(a.pairs[(task, CONTROLS[0], LEVELS_MEAN)], signed=True)}.")
+
+
 def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int, title: str, judged: str,
            judge, keyed) -> str:
   """One claim's paragraph: its statement, how it is judged, a sentence per comparison, and what the table says per
@@ -245,6 +264,8 @@ def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int
   if one_seed:
     text.append(f"On {_names(one_seed)} a cell has one training seed ({ONE_SEED_MARK}): its interval leaves out the "
                 "variation between training seeds.")
+  if number == 1:
+    text += [line for line in (_control(a, task) for task in by_task) if line]
   if not by_task:
     text.append(f"This table cannot decide claim {number}: it holds no SAVi cell beside a global encoder's"
                 + (" with a train level" if number == 2 else "") + ".")
