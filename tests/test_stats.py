@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from roboshape.eval import claims
+from roboshape.eval import plots
 from roboshape.eval import report
 from roboshape.eval import results as results_lib
 from roboshape.eval import stats
@@ -197,3 +198,16 @@ def test_the_published_report_prints_intervals_comparisons_robustness_the_figure
   assert os.path.getsize(root / "report" / "success_by_level.png") > 0
   # the same cells give the same report
   assert report.main(["report", str(root)]) == 0 and (root / "report" / "report.md").read_text() == md
+
+
+def test_the_figures_bars_are_the_tasks_cells_side_by_side_each_encoder_in_one_colour():
+  encoders = ["dino", "r3m", "ae", "ae+proprio", "savi", "savi+proprio", "objects", "state"]
+  cell = (0.5, 0.4, 0.6)
+  values = {("push", e, l): cell for e in ("ae", "savi", "objects") for l in ("train", "L1")}
+  values[("pick", "savi", "L1")] = cell                        # one level is enough for a bar
+  push = plots.bar_layout(values, "push", encoders, ["train", "L1"])
+  assert [(e, c) for e, _, _, c in push] == [("ae", 2), ("savi", 4), ("objects", 6)]
+  assert [o for _, o, _, _ in push] == pytest.approx([-0.8 / 3, 0.0, 0.8 / 3])   # no gaps for absent columns
+  assert [w for _, _, w, _ in push] == pytest.approx([0.8 / 3] * 3)
+  assert plots.bar_layout(values, "pick", encoders, ["train", "L1"]) == [("savi", 0.0, 0.8, 4)]
+  assert plots.bar_layout(values, "place", encoders, ["train", "L1"]) == []

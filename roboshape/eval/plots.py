@@ -51,6 +51,16 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   return fileio.save_figure(fig, path)
 
 
+def bar_layout(values: Dict[Tuple[str, str, str], Tuple], task: str, encoders: Sequence[str],
+               levels: Sequence[str]) -> List[Tuple[str, float, float, int]]:
+  """(encoder, offset from the level's tick, bar width, colour index) of each bar of `task`'s panel: the encoders
+  with a cell on the task, side by side in `encoders`' order and filling the level's 0.8 of the axis; an encoder's
+  colour is its index in `encoders`, the same in every panel."""
+  present = [e for e in encoders if any((task, e, l) in values for l in levels)]
+  width = 0.8 / max(len(present), 1)
+  return [(e, (j - (len(present) - 1) / 2) * width, width, list(encoders).index(e)) for j, e in enumerate(present)]
+
+
 def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float, float]], tasks: Sequence[str],
                           encoders: Sequence[str], levels: Sequence[str], path: str) -> str:
   """Writes the per-task figure to `path`: one panel per task, x the levels, one bar per encoder at its success
@@ -62,18 +72,15 @@ def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float,
 
   encoders = tables.sort_encoders(list(encoders))
   x = np.arange(len(levels))
-  width = 0.8 / max(len(encoders), 1)
   fig, axes = plt.subplots(1, len(tasks), figsize=(3.2 * len(tasks) + 0.8, 3.0), dpi=150, squeeze=False,
                            sharey=True)
   for ax, task in zip(axes[0], tasks):
-    for i, encoder in enumerate(encoders):
+    for encoder, offset, width, colour in bar_layout(values, task, encoders, levels):
       cells = [values.get((task, encoder, l)) for l in levels]
-      if all(c is None for c in cells):
-        continue
       value, low, high = (np.array([np.nan if c is None else c[k] for c in cells]) for k in range(3))
       errors = np.nan_to_num(np.stack([value - low, high - value]))
-      ax.bar(x + (i - (len(encoders) - 1) / 2) * width, np.nan_to_num(value), width, yerr=errors, capsize=2,
-             error_kw=dict(elinewidth=0.8), label=tables.encoder_name(encoder), color=f"C{i}")
+      ax.bar(x + offset, np.nan_to_num(value), width, yerr=errors, capsize=2, error_kw=dict(elinewidth=0.8),
+             label=tables.encoder_name(encoder), color=f"C{colour}")
     ax.set_xticks(x, [tables.level_name(l) for l in levels])
     ax.set_ylim(0, 1.05)
     ax.set_title(task, fontsize=9)
