@@ -190,15 +190,16 @@ def _names(items: Sequence[str]) -> str:
   return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
-def _level_mean(a: Answer, task: str, encoder: str, levels: Sequence[str]) -> float:
-  """The encoder's success pooled over `levels` (every level of a cell has as many rollouts)."""
+def _level_mean(a: Answer, task: str, encoder: str, other: str) -> float:
+  """The encoder's success averaged over the levels of SAVi's comparison with `other` on `task`: the average
+  `stats.difference` takes of each cell for the pair's LEVELS_MEAN."""
+  levels = [l for l in a.levels if (task, other, l) in a.pairs]
   return float(np.mean([a.success[(task, encoder, level)].value for level in levels]))
 
 
 def _claim1(a: Answer, task: str, other: str) -> Tuple[int, str]:
   e, name = a.pairs[(task, other, LEVELS_MEAN)], tables.encoder_name(other)
-  levels = [l for l in a.levels if (task, other, l) in a.pairs]
-  means = f"SAVi {_level_mean(a, task, OBJECT_CENTRIC, levels):.2f}, {name} {_level_mean(a, task, other, levels):.2f}"
+  means = f"SAVi {_level_mean(a, task, OBJECT_CENTRIC, other):.2f}, {name} {_level_mean(a, task, other, other):.2f}"
   text = f"{task}, SAVi − {name}: {interval(e, signed=True)} ({means} over the levels): {OUTCOMES[e.side]}"
   if e.side == 0:
     if _never_succeeds(a.cells[(task, OBJECT_CENTRIC)]) and _never_succeeds(a.cells[(task, other)]):
@@ -231,11 +232,10 @@ def _claim2(a: Answer, task: str, other: str) -> Tuple[int, str]:
 def _control(a: Answer, task: str) -> str:
   """A sentence on what the ground-truth object tokens reach on `task` beside SAVi, or "" without that cell: the
   success an object-centric policy reaches from a perfect decomposition, against which SAVi's is read."""
-  levels = [l for l in a.levels if (task, CONTROLS[0], l) in a.pairs]
-  if not levels:
+  if (task, CONTROLS[0], LEVELS_MEAN) not in a.pairs:
     return ""
   return (f"On {task} the ground-truth object tokens (the control) succeed "
-          f"{_level_mean(a, task, CONTROLS[0], levels):.2f} over the levels, SAVi − Objects "
+          f"{_level_mean(a, task, CONTROLS[0], CONTROLS[0]):.2f} over the levels, SAVi − Objects "
           f"{interval(a.pairs[(task, CONTROLS[0], LEVELS_MEAN)], signed=True)}.")
 
 
