@@ -12,10 +12,10 @@ One run times, alternately (round after round, the median of each kept, to damp 
   no dropout:  the one-device step with the policy's dropout at 0 (what the dropout masks cost);
   matmul:      a dense float32 2048^3 matmul, and dense matmuls of the trunk's own shapes ([B*L, W] x [W, W] and
                [B*L, W] x [W, 4W], L = H x tokens + H read-out tokens), on the same device.
-Prints each one's time, FLOPs (XLA cost analysis of the one-device step) and FLOP/s, and the FLOP/s as a fraction
-of the 2048^3 matmul's. The bar, for the fastest step train_policy runs here (split over the cores): >= 0.6 of the
-matmul, or >= 2x the one-device step's steps/s, both measured in this run (BASELINE_STEP_S, the step the bar was
-set against on another 2-core machine, is printed for reference).
+Prints each one's time, FLOPs (XLA cost analysis of the one-device step as written: flops.step_flops) and FLOP/s,
+and the FLOP/s as a fraction of the 2048^3 matmul's. The bar, for the fastest step train_policy runs here (split over
+the cores): >= 0.6 of the matmul, or >= 2x the one-device step's steps/s, both measured in this run (BASELINE_STEP_S,
+the step the bar was set against on another 2-core machine, is printed for reference).
 The trunk-shaped matmuls say what the step's dense layers could reach; the gap between them and the step
 is the rest of the step (attention's small batched products, softmax, masks, layer norms, the optimizer).
 """
@@ -42,9 +42,9 @@ from roboshape.train import sharding  # pylint: disable=wrong-import-position
 BASELINE_STEP_S = 0.50   # the :small step when the bar was set, on the first 2-core CPU (results/small/README.md)
 
 
-def compiled_step(policy_config, tokens: int, token_dim: int, dp=None):
-  """(compiled step, its FLOPs, initial state, batch, rng) for the policy the config section describes; with `dp`
-  (a sharding.DataParallel) the batch is split over its devices and the state replicated, as train_policy does."""
+def step_inputs(policy_config, tokens: int, token_dim: int, dp=None):
+  """(jitted train step, initial state, batch, rng) for the policy the config section describes; with `dp` (a
+  sharding.DataParallel) the batch is split over its devices and the state replicated, as train_policy does."""
   pc = policy_config
   b, h = pc.train.batch_size, pc.history
   net, optimizer = policy_lib.net_from_config(pc), bc.make_optimizer(pc.train)
@@ -55,9 +55,14 @@ def compiled_step(policy_config, tokens: int, token_dim: int, dp=None):
                mask=np.ones((b, h), np.float32))
   if dp is not None:
     state, batch = jax.device_put(state, dp.replicated), dp.put_batch(batch)
-  key = jax.random.PRNGKey(0)
-  compiled = bc.make_train_step(net, optimizer).lower(state, batch, key).compile()
-  return compiled, flops.compiled_flops(compiled), state, batch, key
+  return bc.make_train_step(net, optimizer), state, batch, jax.random.PRNGKey(0)
+
+
+def compiled_step(policy_config, tokens: int, token_dim: int, dp=None):
+  """(compiled step, its FLOPs, initial state, batch, rng): step_inputs' step compiled."""
+  step, state, batch, key = step_inputs(policy_config, tokens, token_dim, dp)
+  step_flops = flops.step_flops(step, state, batch, key)       # first: it fails in seconds, if at all
+  return step.lower(state, batch, key).compile(), step_flops, state, batch, key
 
 
 def time_steps(compiled, state, batch, key, steps: int) -> float:
@@ -104,7 +109,7 @@ def main():
   for name, values in rates.items():
     rate = float(np.median(values))
     print(f"matmul {name + ':':<28}{rate / 1e9:7.1f} GFLOP/s = {rate / matmul:.2f} of the 2048^3 matmul")
-  work = steps["roboshape"][1]    # the step's FLOPs (a split step's cost analysis counts one device's share)
+  work = steps["roboshape"][1]    # the step's FLOPs: the same work whether one device or several run it
   for name in steps:
     t = float(np.median(times[name]))
     step_flops = steps[name][1] if name == "no dropout" else work

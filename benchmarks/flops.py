@@ -3,11 +3,19 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
-def compiled_flops(compiled) -> float:
-  """FLOPs of one call of a compiled jax function, from XLA's cost analysis."""
-  cost = compiled.cost_analysis()
+def step_flops(jitted, *args) -> float:
+  """FLOPs of one call `jitted(*args)` (a jax.jit function with no static arguments), from XLA's cost analysis of the
+  step lowered for the CPU from the arguments' shapes, before any backend optimises it: every convolution and matmul
+  as written, whatever device `args` are on. A compiled module's count is the same on a CPU but not on a GPU, whose
+  backend turns convolutions and matmuls into cuDNN and cuBLAS calls that XLA's cost analysis counts as nothing (and
+  a GPU's lowered module has no cost analysis through JAX's CUDA plugin)."""
+  cpu = jax.sharding.SingleDeviceSharding(jax.devices("cpu")[0])
+  shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(np.shape(x), x.dtype, sharding=cpu), args)
+  function = getattr(jitted, "__wrapped__", jitted)     # jitted anew: shardings bound to other devices would pin it
+  cost = jax.jit(function).lower(*shapes).cost_analysis()
   if isinstance(cost, (list, tuple)):
     cost = cost[0]
   return float(cost["flops"])

@@ -17,14 +17,17 @@ after compiling and one warm-up step (jax.block_until_ready at the end of each r
   AE:    the `ae` encoder's pretrain step (pretrain.compiled, the same pretrain section as SAVi's); if it fails,
          the SAVi step stands in for it in the projection, as an upper bound (said in the output);
   matmul: a dense float32 matmul (benchmarks/flops.py) at JAX's default precision, the rate the steps are set against.
-Each step's FLOPs come from XLA's cost analysis of the compiled step; achieved TFLOP/s = FLOPs / median step time.
+Each step's FLOPs come from XLA's cost analysis of the step lowered for the CPU, before a backend optimises it (on the
+GPU, the compiled step's convolutions and matmuls are cuDNN and cuBLAS calls that the analysis counts as nothing:
+flops.step_flops); achieved TFLOP/s = FLOPs / median step time.
 Then it prints the GPU-hours of the `:paper` grid (configs/reproduce.py:paper, and every registered encoder) from
 those step times and the configs' step counts and seeds, with the assumptions and what is left out, and one
 "unmeasured: <reason>" line for each thing this machine cannot run (the `:tiny` pipeline, ManiSkill's physx_cuda),
 or a try at it where its imports work.
 
   --smoke --allow-cpu: the `:tiny` variant, batch 2, one round of one step, on whatever device (a check of the
-  script, not a measurement); --allow-cpu alone runs the full measurement on a CPU.
+  script, not a measurement); --allow-cpu alone runs the full measurement on a CPU; --flops-only prints the three
+  steps' FLOPs and nothing else, on any device, in under a minute (they do not depend on the device).
 """
 import argparse
 import dataclasses
@@ -113,12 +116,12 @@ def measure_reconstruction(name: str, comp, config, rounds: int, steps: int) -> 
   length, state and batch placed as benchmarks/savi_speed.py and the pretrain stage place them."""
   t, res = config.pretrain.train, int(config.env.resolution)
   state, video, depth, key = savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), res, res, 3))
+  step_flops = flops.step_flops(comp.train_step, state, video, depth, key)   # first: it fails in seconds, if at all
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, depth, key).compile()
   compile_s = time.perf_counter() - start
   times = time_rounds(compiled, state, (video, depth, key), rounds, steps)
-  return Measured(name, float(np.median(times)), times, flops.compiled_flops(compiled), compile_s,
-                  parameter_count(state["params"]))
+  return Measured(name, float(np.median(times)), times, step_flops, compile_s, parameter_count(state["params"]))
 
 
 def paper_config(encoder: str, variant: str, batch: int):
@@ -145,14 +148,19 @@ def measure_ae(variant: str, batch: int, rounds: int, steps: int) -> Measured:
   return measure_reconstruction("AE pretrain step", pretrain.compiled(config), config, rounds, steps)
 
 
-def measure_bc(variant: str, batch: int, rounds: int, steps: int) -> Measured:
-  """bc_speed.compiled_step on SAVi-like tokens, with the state and batch on the device (sharding.DataParallel,
-  as train_policy places them), so the timed step moves no batch from the host."""
+def bc_config(variant: str, batch: int):
+  """The policy section of the timed BC step, and the SAVi-like tokens it reads (slots x slot size a frame)."""
   config = common.get_config("push", "savi", variant)
   pc = config.policy
   if batch:
     pc.train.batch_size = batch
-  tokens, dim = int(config.savi.num_slots), int(config.savi.slot_size)
+  return pc, int(config.savi.num_slots), int(config.savi.slot_size)
+
+
+def measure_bc(variant: str, batch: int, rounds: int, steps: int) -> Measured:
+  """bc_speed.compiled_step on SAVi-like tokens, with the state and batch on the device (sharding.DataParallel,
+  as train_policy places them), so the timed step moves no batch from the host."""
+  pc, tokens, dim = bc_config(variant, batch)
   log(f"BC ({variant}): width {pc.width}, {pc.num_layers} layers, {pc.num_heads} heads, batch "
       f"{pc.train.batch_size}, history {pc.history}, {tokens} tokens x {dim} a frame; compiling")
   start = time.perf_counter()
@@ -162,6 +170,18 @@ def measure_bc(variant: str, batch: int, rounds: int, steps: int) -> Measured:
   times = time_rounds(compiled, state, (data, key), rounds, steps)
   return Measured("BC train step", float(np.median(times)), times, step_flops, compile_s,
                   parameter_count(state["params"]))
+
+
+def count_flops(variant: str, batch: int) -> None:
+  """Each timed step's FLOPs (flops.step_flops) without compiling or timing it: seconds on any device."""
+  for encoder, name in (("savi", "SAVi pretrain step"), ("ae", "AE pretrain step")):
+    config = paper_config(encoder, variant, batch)
+    comp, t = pretrain.compiled(config), config.pretrain.train
+    inputs = savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), 64, 64, 3))
+    log(f"{name}: {flops.step_flops(comp.train_step, *inputs) / 1e9:.1f} GFLOP/step")
+  pc, tokens, dim = bc_config(variant, batch)
+  step, *inputs = bc_speed.step_inputs(pc, tokens, dim)
+  log(f"BC train step: {flops.step_flops(step, *inputs) / 1e9:.1f} GFLOP/step")
 
 
 def attempt(label: str, measure, *args):
@@ -358,6 +378,8 @@ def parse_args():
   parser.add_argument("--savi-steps", type=int, default=3, help="chained SAVi (and AE) steps a round")
   parser.add_argument("--bc-steps", type=int, default=10, help="chained BC steps a round")
   parser.add_argument("--matmul", type=int, default=8192, help="side of the reference float32 matmul")
+  parser.add_argument("--flops-only", action="store_true",
+                      help="print each step's FLOPs and exit: no compiling or timing, so under a minute on a CPU too")
   parser.add_argument("--budget-s", type=float, default=420.0,
                       help="seconds after which the tries (the :tiny pipeline, physx_cuda) are not started")
   args = parser.parse_args()
@@ -392,11 +414,15 @@ def print_matmul(side: int, measured) -> None:
 
 def main() -> int:
   args = parse_args()
+  variant, batch = ("tiny", 2) if args.smoke else ("paper", 0)
+  if args.flops_only:
+    header(variant)
+    count_flops(variant, batch)
+    return 0
   if jax.default_backend() != "gpu" and not args.allow_cpu:
     print(f"gpu_scaleup: no GPU found (jax {jax.__version__} backend {jax.default_backend()!r}): the README's GPU "
           "figures stay unmeasured.", flush=True)
     return 0
-  variant, batch = ("tiny", 2) if args.smoke else ("paper", 0)
   header(variant)
   savi_m = attempt("SAVi pretrain step", measure_savi, variant, batch, args.rounds, args.savi_steps)
   ae_m = attempt("AE pretrain step", measure_ae, variant, batch, args.rounds, args.savi_steps)

@@ -11,7 +11,8 @@ Prints:
      SAVi recurrently over whole episodes). Bar: cached >= 5x faster;
   3. `policy.act` latency (batch 1, SAVi step + trunk + head) next to one rendered env step of the simulator
      (roboshape.sim.SimPool, one worker, 64x64) measured in the same run. Bar: act() <= 0.5 x env step;
-  4. the FLOPs of one act() (XLA cost analysis of the compiled step) against the machine's dense-matmul FLOP/s.
+  4. the FLOPs of one act() (XLA cost analysis of the step as written: flops.step_flops) against the machine's
+     dense-matmul FLOP/s.
 SAVi and the policy have random weights of the variant's architecture: speed does not depend on the weights.
 """
 import argparse
@@ -134,8 +135,9 @@ def act_latency(config, encoder, reps: int):
     start = time.perf_counter()
     policy.act(f)
     times.append(time.perf_counter() - start)
-  compiled = policy._step.lower(policy.params, encoder.params, policy.carry, jnp.asarray(frames[:1])).compile()  # pylint: disable=protected-access
-  return float(np.median(times)), flops.compiled_flops(compiled), policy.num_traces
+  step = policy._step  # pylint: disable=protected-access
+  step_flops = flops.step_flops(step, policy.params, encoder.params, policy.carry, jnp.asarray(frames[:1]))
+  return float(np.median(times)), step_flops, policy.num_traces
 
 
 def env_step_time(task: str, reps: int):

@@ -60,7 +60,7 @@ def main():
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, depth, key).compile()
   compile_s = time.perf_counter() - start
-  step_flops = flops.compiled_flops(compiled)
+  step_flops = flops.step_flops(comp.train_step, state, video, depth, key)
 
   state, metrics = compiled(state, video, depth, key)
   jax.block_until_ready(metrics)
