@@ -486,6 +486,10 @@ def test_report_over_published_runs_reads_back_each_run_and_marks_the_missing_ce
   assert "## pick" in md and md.split("## pick")[1].count("- not published yet: SAVi\n") == 1
   assert "- not published yet: State\n" in md.split("## pick")[0].split("## push")[1]
   assert os.path.getsize(paths["overall.png"]) > 0
+  # The overall table says which tasks each row averages, and that rows over different tasks are not compared.
+  overall = {line.split(" | ")[0]: line.split(" | ")[-1] for line in md.split("## Overall")[1].splitlines()
+             if line.startswith("| SAVi |") or line.startswith("| State |")}
+  assert overall == {"| SAVi": "push |", "| State": "pick |"} and "not comparable" in md.split("## Overall")[1]
   # A run with training seeds beside the others; built twice, the report does not read its own pooled results.csv
   # (report/, where rows with and without a training seed now meet) as one more run.
   os.makedirs(os.path.join(root, "place_state"))

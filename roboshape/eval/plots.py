@@ -23,6 +23,16 @@ def overall_means(summary: Sequence[Dict], levels: Sequence[str] = LEVEL_NAMES) 
   return out
 
 
+def overall_tasks(summary: Sequence[Dict]) -> Dict[str, List[str]]:
+  """{encoder: the tasks its overall means average over} (those it has a cell on), in the summary's order."""
+  out = {}
+  for r in summary:
+    tasks = out.setdefault(r["encoder"], [])
+    if r["task"] not in tasks:
+      tasks.append(r["task"])
+  return out
+
+
 def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] = LEVEL_NAMES,
                       title: str = "Overall success rate (mean over tasks)") -> str:
   """Writes a grouped bar chart PNG (x: levels, one bar per encoder) to `path`; returns `path`."""
@@ -30,13 +40,14 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
 
-  means = overall_means(summary, levels)
+  means, tasks = overall_means(summary, levels), overall_tasks(summary)
+  mixed = len({tuple(t) for t in tasks.values()}) > 1     # encoders averaged over different tasks: say which
   x = np.arange(len(levels))
   width = 0.8 / max(len(means), 1)
-  fig, ax = plt.subplots(figsize=(5.5, 3.2), dpi=150)
+  fig, ax = plt.subplots(figsize=(7.0, 3.2), dpi=150)
   for i, (encoder, values) in enumerate(means.items()):
     bars = ax.bar(x + (i - (len(means) - 1) / 2) * width, np.nan_to_num(values), width,
-                  label=tables.encoder_name(encoder))
+                  label=tables.encoder_name(encoder) + (f" ({', '.join(tasks[encoder])})" if mixed else ""))
     for bar, v in zip(bars, values):
       if not np.isnan(v):
         ax.text(bar.get_x() + bar.get_width() / 2, bar.get_height() + 0.01, f"{v:.2f}", ha="center",
@@ -46,7 +57,7 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   ax.set_ylabel("success rate")
   ax.set_xlabel("generalization level")
   ax.set_title(title, fontsize=9)
-  ax.legend(fontsize=7, frameon=False)
+  ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.0, 1.0))   # beside the bars, not on them
   ax.spines[["top", "right"]].set_visible(False)
   return fileio.save_figure(fig, path)
 

@@ -224,13 +224,16 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
   if summary:
     paths["overall.png"] = plots.overall_bar_chart(summary, os.path.join(out_dir, "overall.png"), levels=levels)
     md += ["## Overall", "", "![overall success rate](overall.png)", ""]
-    means = plots.overall_means(summary, levels)
-    md.append("| | " + " | ".join(tables.level_name(l) for l in levels) + " |")
-    md.append("| --- |" + " --- |" * len(levels))
+    means, over = plots.overall_means(summary, levels), plots.overall_tasks(summary)
+    md.append("| | " + " | ".join(tables.level_name(l) for l in levels) + " | mean over |")
+    md.append("| --- |" + " --- |" * (len(levels) + 1))
     for encoder, values in means.items():
       md.append(f"| {tables.encoder_name(encoder)} | " + " | ".join(
-          "-" if v != v else f"{v:.2f}" for v in values) + " |")
+          "-" if v != v else f"{v:.2f}" for v in values) + f" | {', '.join(over[encoder])} |")
     md.append("")
+    if len({tuple(t) for t in over.values()}) > 1:
+      md += ["Each row averages the tasks it has a cell on (mean over); rows over different tasks are not comparable "
+             "here: the per-task tables above compare them.", ""]
   else:
     md += ["No run has evaluation results yet.", ""]
   paths["summary.json"] = os.path.join(out_dir, "summary.json")
