@@ -111,11 +111,16 @@ def time_rounds(step, state, args, rounds: int, steps: int) -> list:
   return times
 
 
+def reconstruction_inputs(comp, config):
+  """(state, video, depth, key) of a pretrain step: savi_speed.synthetic_inputs at the config's batch and clips."""
+  t, res = config.pretrain.train, int(config.env.resolution)
+  return savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), res, res, 3))
+
+
 def measure_reconstruction(name: str, comp, config, rounds: int, steps: int) -> Measured:
   """A pretrain step (pretrain.Compiled: SAVi's or the AE's) on random uint8 clips of the config's batch and clip
   length, state and batch placed as benchmarks/savi_speed.py and the pretrain stage place them."""
-  t, res = config.pretrain.train, int(config.env.resolution)
-  state, video, depth, key = savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), res, res, 3))
+  state, video, depth, key = reconstruction_inputs(comp, config)
   step_flops = flops.step_flops(comp.train_step, state, video, depth, key)   # first: it fails in seconds, if at all
   start = time.perf_counter()
   compiled = comp.train_step.lower(state, video, depth, key).compile()
@@ -173,12 +178,11 @@ def measure_bc(variant: str, batch: int, rounds: int, steps: int) -> Measured:
 
 
 def count_flops(variant: str, batch: int) -> None:
-  """Each timed step's FLOPs (flops.step_flops) without compiling or timing it: seconds on any device."""
+  """Each timed step's FLOPs (flops.step_flops) without compiling or timing it: under a minute on any device."""
   for encoder, name in (("savi", "SAVi pretrain step"), ("ae", "AE pretrain step")):
     config = paper_config(encoder, variant, batch)
-    comp, t = pretrain.compiled(config), config.pretrain.train
-    inputs = savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), 64, 64, 3))
-    log(f"{name}: {flops.step_flops(comp.train_step, *inputs) / 1e9:.1f} GFLOP/step")
+    comp = pretrain.compiled(config)
+    log(f"{name}: {flops.step_flops(comp.train_step, *reconstruction_inputs(comp, config)) / 1e9:.1f} GFLOP/step")
   pc, tokens, dim = bc_config(variant, batch)
   step, *inputs = bc_speed.step_inputs(pc, tokens, dim)
   log(f"BC train step: {flops.step_flops(step, *inputs) / 1e9:.1f} GFLOP/step")
