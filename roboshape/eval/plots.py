@@ -33,6 +33,11 @@ def overall_tasks(summary: Sequence[Dict]) -> Dict[str, List[str]]:
   return out
 
 
+def tasks_differ(tasks: Dict[str, List[str]]) -> bool:
+  """Whether the encoders of overall_tasks average over different tasks (then their overall means do not compare)."""
+  return len({tuple(t) for t in tasks.values()}) > 1
+
+
 def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] = LEVEL_NAMES,
                       title: str = "Overall success rate (mean over tasks)") -> str:
   """Writes a grouped bar chart PNG (x: levels, one bar per encoder) to `path`; returns `path`."""
@@ -41,7 +46,7 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
 
   means, tasks = overall_means(summary, levels), overall_tasks(summary)
-  mixed = len({tuple(t) for t in tasks.values()}) > 1     # encoders averaged over different tasks: say which
+  mixed = tasks_differ(tasks)                             # encoders averaged over different tasks: say which
   x = np.arange(len(levels))
   width = 0.8 / max(len(means), 1)
   fig, ax = plt.subplots(figsize=(7.0, 3.2), dpi=150)

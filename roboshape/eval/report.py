@@ -231,7 +231,7 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
       md.append(f"| {tables.encoder_name(encoder)} | " + " | ".join(
           "-" if v != v else f"{v:.2f}" for v in values) + f" | {', '.join(over[encoder])} |")
     md.append("")
-    if len({tuple(t) for t in over.values()}) > 1:
+    if plots.tasks_differ(over):
       md += ["Each row averages the tasks it has a cell on (mean over); rows over different tasks are not comparable "
              "here: the per-task tables above compare them.", ""]
   else:
