@@ -5,7 +5,7 @@ Command:  python launch.py --config=configs/pick_objects.py:small --workdir=runs
 Runtime:  one to two hours per training seed on one core at :small (mostly behaviour cloning on a token per object),
           plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage
           times: results/small/README.md.
-Results:  results/small/pick_objects/README.md (not published yet: the `:small` grid publishes it)
+Results:  results/small/pick_objects/README.md
 Reads observation/image and observation/segmentation (every dataset stores them), and observation/depth too where
 env.depth is set (the :small). No pretraining. Token layout: roboshape/encoders/objects.py.
 """

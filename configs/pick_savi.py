@@ -5,7 +5,7 @@ Command:  python launch.py --config=configs/pick_savi.py:small --workdir=runs/pi
 Runtime:  about two and a half hours on one core at :small (SAVi's pretraining and the behaviour cloning about an hour
           each), plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each
           cell's stage times: results/small/README.md.
-Results:  results/small/pick_savi/README.md (not published yet: the `:small` grid publishes it)
+Results:  results/small/pick_savi/README.md
 """
 from configs import common
 
