@@ -160,6 +160,21 @@ def test_the_verdict_says_supports_contradicts_or_cannot_decide_from_the_cells()
   assert "This table cannot decide claim 1: it holds no SAVi cell" in claims.verdict(lonely, ["push"], ["ae"])
 
 
+def test_claim_1_reads_savi_beside_the_state_control_over_the_levels_both_have():
+  loaded = _loaded({("pick", "savi"): dict(train=0.1, L1=0.025, L2=0.0), ("pick", "ae"): dict(train=0.0, L1=0.0),
+                    ("pick", "state"): dict(train=1.0, L1=0.9)})
+  a = claims.answer(loaded, ["pick"], ["ae", "savi", "state"], ["train", "L1", "L2"])
+  claim1, claim2 = claims.verdict(a, ["pick"], ["ae", "savi", "state"]).split("\n\n")
+  # over train and L1, the levels the state cell has: state (1.0 + 0.9) / 2 = 0.95, SAVi (0.1 + 0.025) / 2
+  assert ("The privileged state (the control that should succeed) succeeds 0.95 over the same levels on pick, "
+          "SAVi 0.06.") in " ".join(claim1.split())
+  assert "privileged state" not in claim2
+  # without a state cell, no such sentence
+  del loaded[("pick", "state")]
+  assert "privileged state" not in claims.verdict(claims.answer(loaded, ["pick"], ["ae", "savi"], ["train", "L1"]),
+                                                  ["pick"], ["ae", "savi"])
+
+
 def test_encoders_that_never_succeed_cannot_be_separated_nor_their_robustness_compared():
   loaded = _loaded({("place", "savi"): dict(train=0.0, L1=0.0), ("place", "ae"): dict(train=0.0, L1=0.0)})
   flat = " ".join(claims.verdict(claims.answer(loaded, ["place"], ["ae", "savi"], ["train", "L1"]), ["place"],

@@ -9,8 +9,9 @@ robustness, its success at a shift level (and averaged over the shift levels) di
 level; and SAVi's robustness minus each global encoder's. The tables render them; `verdict` reads the claims off
 them, per task and global encoder, by which side of 0 the interval lies:
 
-  claim 1: SAVi's success averaged over the levels minus the other's (each one's success beside it, and the
-  ground-truth object tokens' where that control ran: what a perfect decomposition reaches); claim 2: SAVi's
+  claim 1: SAVi's success averaged over the levels minus the other's (each one's success beside it, the
+  ground-truth object tokens' where that control ran: what a perfect decomposition reaches, and the privileged
+  state's: what the behaviour cloning reaches at all); claim 2: SAVi's
   robustness over the shift levels (averaged) minus the other's.
   above 0: supports; below 0: contradicts; holding 0 or undefined: cannot decide, with how many more rollouts or
   training seeds would decide it if the difference held (stats.needed), or why no number would.
@@ -30,6 +31,7 @@ from roboshape.eval import tables
 OBJECT_CENTRIC = "savi"
 GLOBAL = ("ae", "r3m", "dino")
 CONTROLS = ("objects",)            # compared with SAVi in the tables, not part of the claims
+STATE = "state"                    # the privileged state: the control that should succeed, named in claim 1
 LEVELS_MEAN = "mean"               # the column of a statistic averaged over the levels (or the shift levels)
 OUTCOMES = {1: "supports", -1: "contradicts", 0: "cannot decide"}
 ONE_SEED_MARK = "†"
@@ -230,13 +232,21 @@ def _claim2(a: Answer, task: str, other: str) -> Tuple[int, str]:
 
 
 def _control(a: Answer, task: str) -> str:
-  """A sentence on what the ground-truth object tokens reach on `task` beside SAVi, or "" without that cell: the
-  success an object-centric policy reaches from a perfect decomposition, against which SAVi's is read."""
-  if (task, CONTROLS[0], LEVELS_MEAN) not in a.pairs:
-    return ""
-  return (f"On {task} the ground-truth object tokens (the control) succeed "
-          f"{_level_mean(a, task, CONTROLS[0], CONTROLS[0]):.2f} over the levels, SAVi − Objects "
-          f"{interval(a.pairs[(task, CONTROLS[0], LEVELS_MEAN)], signed=True)}.")
+  """Sentences on what the controls reach on `task` beside SAVi, "" without their cells: the ground-truth object
+  tokens (the success an object-centric policy reaches from a perfect decomposition, against which SAVi's is read)
+  and the privileged state (what the behaviour cloning and the closed loop reach at all, so that a difference
+  between encoders is read beside how far both fall short of it)."""
+  text = []
+  if (task, CONTROLS[0], LEVELS_MEAN) in a.pairs:
+    text.append(f"On {task} the ground-truth object tokens (the control) succeed "
+                f"{_level_mean(a, task, CONTROLS[0], CONTROLS[0]):.2f} over the levels, SAVi − Objects "
+                f"{interval(a.pairs[(task, CONTROLS[0], LEVELS_MEAN)], signed=True)}.")
+  levels = [l for l in a.levels if (task, STATE, l) in a.success and (task, OBJECT_CENTRIC, l) in a.success]
+  if levels:
+    state, savi = (float(np.mean([a.success[(task, e, l)].value for l in levels])) for e in (STATE, OBJECT_CENTRIC))
+    text.append(f"The privileged state (the control that should succeed) succeeds {state:.2f} over the same "
+                f"levels on {task}, SAVi {savi:.2f}.")
+  return " ".join(text)
 
 
 def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int, title: str, judged: str,
