@@ -21,10 +21,11 @@ Variants:
          roboshape/encoders/columns.py); each serves the SAVi or AE its task's plain column pretrained
          (pretrain.from_workdir) and starts once that run has ended. Resumable run by run. Each run's results are
          copied to results/small/<task>_<column>/ as soon as it is evaluated (grid.publish), so the table survives
-         the machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending and how
-         long each stage took. Two runs at once (grid.lanes=2), each pinned to one core, each logging to
-         <run>/log.txt. Baselines whose weights are absent (config.baselines.*.path) are skipped, said in the
-         report. One task's row alone: --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
+         the machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending, how
+         long each stage took and roughly how many core-hours are left. Two runs at once (grid.lanes=2), each
+         pinned to one core, each logging to <run>/log.txt. Baselines whose weights are absent
+         (config.baselines.*.path) are skipped, said in the report. One task's row alone:
+         --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
          --config.pretrain.train_seeds="(0,)" for one training seed and one SAVi seed).
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 

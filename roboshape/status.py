@@ -9,10 +9,16 @@ the process that ran a stage is gone before it finished (run the same command to
 skipped it (SKIPPED.json: a baseline without weights), and "pending" before any stage started. A running or stopped
 training stage says which seed it is at and that seed's newest saved step ("running (seed 2/3 at 1500/5000)"), an
 evaluation how many rollouts its logs hold.
+
+A grid's table ends with a rough estimate of the core-hours its unfinished runs have left (`estimate_left`): each
+unfinished training or evaluation stage's remaining work (training steps over its seeds, rollouts) at the core-seconds
+per unit that the finished stages of its column (else of its encoder, for a column with options) took. It does not
+count collections and caches (minutes a run; a task's collection is shared), nor that rollouts of a longer horizon
+cost more than the ones it was measured on.
 """
 import os
 import sys
-from typing import Dict, List
+from typing import Dict, List, Optional, Tuple
 
 from roboshape import grid
 from roboshape import rundir
@@ -29,15 +35,41 @@ def _alive(pid) -> bool:
   return True
 
 
+ESTIMATED = ("pretrain", "train_policy", "evaluate")   # the stages `estimate_left` counts
+
+
+def _seed_steps(config, stage_dir: str, stage: str) -> Tuple[List[int], int]:
+  """([newest saved step of each seed of a training stage, 0 without a checkpoint], the stage's steps)."""
+  steps = int(config[stage].train.steps)
+  saved = [rundir.saved_steps(rundir.seed_dir(stage_dir, seed)) for seed in rundir.train_seeds(config, stage)]
+  return [min(s[-1], steps) if s else 0 for s in saved], steps
+
+
 def _training_progress(config, stage_dir: str, stage: str) -> str:
   """How far the seeds of a training stage are, from their newest saved checkpoints: "seed 2/3 at 1500/5000"
   (the first seed not yet at its last step), or "all 3 seeds trained"."""
-  seeds, steps = rundir.train_seeds(config, stage), int(config[stage].train.steps)
-  for i, seed in enumerate(seeds):
-    saved = rundir.saved_steps(rundir.seed_dir(stage_dir, seed))
-    if not saved or saved[-1] < steps:
-      return f"seed {i + 1}/{len(seeds)} at {saved[-1] if saved else 0}/{steps}"
-  return f"all {len(seeds)} seeds trained"
+  at, steps = _seed_steps(config, stage_dir, stage)
+  for i, step in enumerate(at):
+    if step < steps:
+      return f"seed {i + 1}/{len(at)} at {step}/{steps}"
+  return f"all {len(at)} seeds trained"
+
+
+def work(config, run_dir: str, stage: str) -> Optional[Tuple[int, int]]:
+  """(done, in all) of a stage's work, from what it saved: training steps summed over its seeds (pretrain,
+  train_policy; a pretrain that reuses another run's encoder has none) or rollouts (evaluate); None for the other
+  stages."""
+  if stage == "pretrain" and config.pretrain.get("from_workdir"):
+    return 0, 0
+  if stage in ("pretrain", "train_policy"):
+    at, steps = (_seed_steps(config, rundir.pretrain_dir(run_dir, config.encoder), "pretrain") if stage == "pretrain"
+                 else _seed_steps(config, rundir.policy_dir(run_dir), "policy"))
+    return sum(at), steps * len(at)
+  if stage == "evaluate":
+    seeds = rundir.train_seeds(config)
+    total = len(seeds) * len(config.eval.levels) * int(config.eval.num_seeds) * int(config.eval.rollouts_per_seed)
+    return sum(len(results_lib.read_log(rundir.rollout_log(run_dir, s))) for s in seeds), total
+  return None
 
 
 def progress(config, run_dir: str, stage: str) -> str:
@@ -48,9 +80,8 @@ def progress(config, run_dir: str, stage: str) -> str:
   if stage == "train_policy":
     return _training_progress(config, rundir.policy_dir(run_dir), "policy")
   if stage == "evaluate":
-    seeds = rundir.train_seeds(config)
-    total = len(seeds) * len(config.eval.levels) * int(config.eval.num_seeds) * int(config.eval.rollouts_per_seed)
-    return f"{sum(len(results_lib.read_log(rundir.rollout_log(run_dir, s))) for s in seeds)}/{total} rollouts"
+    done, total = work(config, run_dir, stage)
+    return f"{done}/{total} rollouts"
   return ""
 
 
@@ -84,7 +115,41 @@ def run_status(stages, run_dir: str, config=None) -> Dict:
     state = "pending"
   times = [rundir.logged_time(entry) for entry in log.values() if isinstance(entry, dict)]
   return dict(state=state, stages=per_stage, seconds=sum(t[0] for t in times),
-              core_hours=sum(t[1] for t in times) / 3600)
+              core_hours=sum(t[1] for t in times) / 3600,
+              stage_core_seconds={stage: rundir.logged_time(entry)[1] for stage, entry in log.items()
+                                  if isinstance(entry, dict)})
+
+
+def estimate_left(rows: List[Dict]) -> None:
+  """Sets each unfinished run's row's `left`: the rough core-hours its stages of ESTIMATED have left (module
+  docstring), None where no finished stage of its column or encoder gives a rate; None too for a done or skipped
+  run. Rows need `config` and `run_dir` (`workdir_status` gives them)."""
+  def keys(column, stage):                      # its column's rate, else its encoder's (a column with options)
+    return tuple(dict.fromkeys(((column, stage), (columns.parse(column)[0], stage))))
+
+  spent, units = {}, {}
+  for r in rows:
+    for stage in ESTIMATED:
+      if isinstance(r["stages"].get(stage), (int, float)):
+        _, total = work(r["config"], r["run_dir"], stage)
+        for key in keys(r["encoder"], stage):
+          spent[key] = spent.get(key, 0.0) + r["stage_core_seconds"].get(stage, 0.0)
+          units[key] = units.get(key, 0) + total
+  for r in rows:
+    r["left"] = None
+    if r["state"] in ("done", "skipped"):
+      continue
+    left = 0.0
+    for stage in ESTIMATED:
+      if stage not in r["stages"] or isinstance(r["stages"][stage], (int, float)):
+        continue
+      done, total = work(r["config"], r["run_dir"], stage)
+      key = next((k for k in keys(r["encoder"], stage) if units.get(k)), None)
+      if total > done and key is None:
+        break
+      left += (total - done) * spent[key] / units[key] / 3600 if total > done else 0.0
+    else:
+      r["left"] = left
 
 
 def workdir_status(workdir: str) -> List[Dict]:
@@ -95,7 +160,10 @@ def workdir_status(workdir: str) -> List[Dict]:
     runs = list(grid.grid_configs(config, workdir))
   else:
     runs = [(config.task, columns.of_config(config), config, workdir)]
-  return [dict(task=t, encoder=e, run_dir=d, **run_status(tuple(sub.stages), d, sub)) for t, e, sub, d in runs]
+  rows = [dict(task=t, encoder=e, run_dir=d, config=sub, **run_status(tuple(sub.stages), d, sub))
+          for t, e, sub, d in runs]
+  estimate_left(rows)
+  return rows
 
 
 def _duration(seconds) -> str:
@@ -105,20 +173,35 @@ def _duration(seconds) -> str:
   return f"{minutes // 60}h{minutes % 60:02d}m" if minutes >= 60 else f"{minutes}m{s:02d}s"
 
 
+def _left(value) -> str:
+  return "" if value is None else f"~{value:.1f}"
+
+
 def render(rows: List[Dict]) -> str:
-  """A markdown table: one line per run, its state, each stage's wall time (or state), the total wall time and the
-  core-hours (rundir.read_stage_log: each attempt's wall time times the cores it held)."""
+  """A markdown table: one line per run, its state, each stage's wall time (or state), the total wall time, the
+  core-hours (rundir.read_stage_log: each attempt's wall time times the cores it held) and, with `left` in the
+  rows (`estimate_left`), the core-hours each has left and their sum."""
   stages = [s for s in rundir.STAGES if any(s in r["stages"] for r in rows)]
-  lines = ["| task | encoder | state | " + " | ".join(stages) + " | total | core-hours |",
-           "| --- | --- | --- | " + " | ".join("---" for _ in stages) + " | --- | --- |"]
+  estimated = any("left" in r for r in rows)
+  extra = " left (est.) |" if estimated else ""
+  lines = ["| task | encoder | state | " + " | ".join(stages) + " | total | core-hours |" + extra,
+           "| --- | --- | --- | " + " | ".join("---" for _ in stages) + " | --- | --- |"
+           + (" --- |" if estimated else "")]
   for r in rows:
     cells = [_duration(r["stages"][s]) if s in r["stages"] else "" for s in stages]
     lines.append(f"| {r['task']} | {r['encoder']} | {r['state']} | " + " | ".join(cells)
-                 + f" | {_duration(r['seconds'])} | {r['core_hours']:.2f} |")
+                 + f" | {_duration(r['seconds'])} | {r['core_hours']:.2f} |"
+                 + (f" {_left(r.get('left'))} |" if estimated else ""))
   counts = {}
   for r in rows:
     counts[r["state"]] = counts.get(r["state"], 0) + 1
   lines += ["", ", ".join(f"{n} {state}" for state, n in sorted(counts.items())) + f" of {len(rows)} run(s)"]
+  if estimated:
+    unknown = [f"{r['task']} x {r['encoder']}" for r in rows
+               if r.get("left") is None and r["state"] not in ("done", "skipped")]
+    lines.append(f"About {sum(r['left'] or 0.0 for r in rows):.1f} core-hours left, at the rates of the finished "
+                 "stages (collections and caches not counted)"
+                 + (f"; no rate yet for {', '.join(unknown)}" if unknown else "") + ".")
   return "\n".join(lines)
 
 

@@ -141,6 +141,40 @@ def test_status_of_a_grid_says_done_running_stopped_skipped_and_pending(tmp_path
   assert {r["state"] for r in status.workdir_status(workdir) if r["task"] == "pick"} == {"pending", "skipped"}
 
 
+def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_column_or_encoder(tmp_path):
+  config = common.get_config("push", "state", "tiny")
+  config.grid = dict(tasks=("push", "pick"), encoders=("state", "objects", "state+proprio"), publish="")
+  workdir = str(tmp_path / "grid")
+  rundir.save_config(config, workdir)
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  steps = int(rows[("push", "state")]["config"].policy.train.steps)
+  assert status.work(rows[("push", "state")]["config"], rows[("push", "state")]["run_dir"], "train_policy") == (
+      0, steps)
+  # push x state finished: its policy took 2 core-hours, its evaluation 1 (in core-seconds, as the stage log holds)
+  done = rundir.grid_run_dir(workdir, "push", "state")
+  os.makedirs(done)
+  log = {stage: dict(state="done", seconds=1.0, core_seconds=1.0) for stage in rows[("push", "state")]["stages"]}
+  log["train_policy"]["core_seconds"], log["evaluate"]["core_seconds"] = 7200.0, 3600.0
+  with open(rundir.stage_log_path(done), "w") as f:
+    json.dump(log, f)
+  # pick x state trained half its steps: half the policy's 2 core-hours and the whole evaluation's hour are left
+  half = rundir.grid_run_dir(workdir, "pick", "state")
+  os.makedirs(os.path.join(rundir.checkpoints(rundir.policy_dir(half)), str(steps // 2)))
+  rundir.record_stage(half, "collect", "done", 1.0)
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  assert rows[("pick", "state")]["left"] == pytest.approx((steps - steps // 2) / steps * 2.0 + 1.0)
+  # a column with options takes its encoder's rate (push and pick x state+proprio: 3 each); a column nothing
+  # finished of has no estimate
+  assert rows[("push", "state+proprio")]["left"] == pytest.approx(3.0)
+  assert rows[("push", "objects")]["left"] is None and rows[("push", "state")]["left"] is None
+  text = status.render(list(rows.values()))
+  assert [line for line in text.splitlines() if line.startswith("| pick | state | stopped |")][0].endswith(
+      f"| ~{rows[('pick', 'state')]['left']:.1f} |")
+  assert text.endswith(f"About {3.0 + 3.0 + rows[('pick', 'state')]['left']:.1f} core-hours left, at the "
+                       "rates of the finished stages (collections and caches not counted); no rate yet for push x "
+                       "objects, pick x objects.")
+
+
 def test_an_unfinished_stage_says_how_far_its_seeds_and_rollouts_got(tmp_path):
   config = common.get_config("push", "savi", "tiny")
   config.pretrain.train_seeds, config.policy.train_seeds = (0, 1), (0, 1, 2)
