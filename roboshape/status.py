@@ -55,21 +55,31 @@ def _training_progress(config, stage_dir: str, stage: str) -> str:
   return f"all {len(at)} seeds trained"
 
 
-def work(config, run_dir: str, stage: str) -> Optional[Tuple[int, int]]:
-  """(done, in all) of a stage's work, from what it saved: training steps summed over its seeds (pretrain,
-  train_policy; a pretrain that reuses another run's encoder has none) or rollouts (evaluate); None for the other
-  stages."""
-  if stage == "pretrain" and config.pretrain.get("from_workdir"):
-    return 0, 0
-  if stage in ("pretrain", "train_policy"):
-    at, steps = (_seed_steps(config, rundir.pretrain_dir(run_dir, config.encoder), "pretrain") if stage == "pretrain"
-                 else _seed_steps(config, rundir.policy_dir(run_dir), "policy"))
-    return sum(at), steps * len(at)
+def planned(config, stage: str) -> Optional[int]:
+  """A stage's work in all, from the config alone: training steps summed over its seeds (pretrain, train_policy; a
+  pretrain that reuses another run's encoder has none) or rollouts (evaluate); None for the other stages."""
+  if stage == "pretrain":
+    return 0 if config.pretrain.get("from_workdir") else (
+        int(config.pretrain.train.steps) * len(rundir.train_seeds(config, "pretrain")))
+  if stage == "train_policy":
+    return int(config.policy.train.steps) * len(rundir.train_seeds(config))
   if stage == "evaluate":
-    seeds = rundir.train_seeds(config)
-    total = len(seeds) * len(config.eval.levels) * int(config.eval.num_seeds) * int(config.eval.rollouts_per_seed)
-    return sum(len(results_lib.read_log(rundir.rollout_log(run_dir, s))) for s in seeds), total
+    return (len(rundir.train_seeds(config)) * len(config.eval.levels) * int(config.eval.num_seeds)
+            * int(config.eval.rollouts_per_seed))
   return None
+
+
+def work(config, run_dir: str, stage: str) -> Optional[Tuple[int, int]]:
+  """(done, in all) of a stage's work (`planned`), the done part from what it saved: its seeds' newest
+  checkpoints or the rollouts in its logs; None for the stages `planned` does not count."""
+  total = planned(config, stage)
+  if not total:
+    return None if total is None else (0, 0)
+  if stage == "evaluate":
+    return sum(len(results_lib.read_log(rundir.rollout_log(run_dir, s))) for s in rundir.train_seeds(config)), total
+  at, _ = (_seed_steps(config, rundir.pretrain_dir(run_dir, config.encoder), "pretrain") if stage == "pretrain"
+           else _seed_steps(config, rundir.policy_dir(run_dir), "policy"))
+  return sum(at), total
 
 
 def progress(config, run_dir: str, stage: str) -> str:
@@ -130,11 +140,10 @@ def estimate_left(rows: List[Dict]) -> None:
   spent, units = {}, {}
   for r in rows:
     for stage in ESTIMATED:
-      if isinstance(r["stages"].get(stage), (int, float)):
-        _, total = work(r["config"], r["run_dir"], stage)
+      if isinstance(r["stages"].get(stage), (int, float)):            # finished: its work is what was planned
         for key in keys(r["encoder"], stage):
           spent[key] = spent.get(key, 0.0) + r["stage_core_seconds"].get(stage, 0.0)
-          units[key] = units.get(key, 0) + total
+          units[key] = units.get(key, 0) + planned(r["config"], stage)
   for r in rows:
     r["left"] = None
     if r["state"] in ("done", "skipped"):
@@ -144,12 +153,14 @@ def estimate_left(rows: List[Dict]) -> None:
       if stage not in r["stages"] or isinstance(r["stages"][stage], (int, float)):
         continue
       done, total = work(r["config"], r["run_dir"], stage)
+      if total <= done:
+        continue
       key = next((k for k in keys(r["encoder"], stage) if units.get(k)), None)
-      if total > done and key is None:
+      if key is None:
+        left = None
         break
-      left += (total - done) * spent[key] / units[key] / 3600 if total > done else 0.0
-    else:
-      r["left"] = left
+      left += (total - done) * spent[key] / units[key] / 3600
+    r["left"] = left
 
 
 def workdir_status(workdir: str) -> List[Dict]:
