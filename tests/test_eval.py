@@ -714,6 +714,13 @@ def test_the_published_report_lists_its_grids_cells_not_published_yet_and_those_
   assert open(paths["table_pick.md"]).read().startswith("| | R3M | AE | SAVi |")
   assert "- not published yet: SAVi\n" in push and "- skipped: R3M on push: R3M weights not found: see README.md" in push
   assert "- not published yet: R3M, AE, SAVi\n" in pick and "skipped" not in pick.split("The paper's")[0]
+  publish.record_grid(root, ("place",), ("ae", "savi+proprio"))   # a grid over part of the cells adds, never narrows
+  assert publish.grid_record(root) == dict(tasks=["push", "pick", "place"],
+                                           columns=["savi", "ae", "r3m", "savi+proprio"],
+                                           skipped={"push_r3m": "R3M weights not found: see README.md"})
+  md = open(report.build_published_report(root)["report.md"]).read()
+  pick = md.split("## pick\n")[1].split("## place\n")[0]
+  assert "- not published yet: R3M, AE, SAVi, SAVi+proprio\n" in pick
   with open(os.path.join(root, publish.GRID_FILE), "w") as f:
     f.write("{")
   with pytest.raises(UserError, match=r"grid\.json is damaged \(JSONDecodeError\): delete it"):

@@ -27,7 +27,9 @@ its evaluation is complete. What is copied, under fixed names (files the run doe
 
 A grid that publishes also keeps <dest_root>/grid.json: its tasks and columns, and the one-line reason of each cell
 it skipped (a baseline without weights), so the report over the folder lists the cells not published yet and the
-skipped ones with their reasons while the grid is part way.
+skipped ones with their reasons while the grid is part way. A grid run over part of the cells (one task's row, or
+the cells still to do after a machine lost the grid's workdir) adds its tasks and columns to the record and never
+narrows it: delete grid.json to start a record anew.
 
 Files of an earlier publication of the same run that this one does not replace are removed, so the folder always
 holds one run; a README.md written there by hand is kept while it is this run's (the folder's config.json is the
@@ -161,8 +163,12 @@ def grid_record(dest_root: str) -> Dict:
 
 
 def record_grid(dest_root: str, tasks, grid_columns) -> None:
-  """Notes in grid.json the tasks and columns of the grid publishing into `dest_root`, keeping the skips noted."""
-  _write_grid(dest_root, dict(tasks=list(tasks), columns=list(grid_columns), skipped=grid_record(dest_root)["skipped"]))
+  """Adds to grid.json the tasks and columns of the grid publishing into `dest_root`, after those noted already
+  (a grid over part of the cells never narrows the record), keeping the skips noted."""
+  record = grid_record(dest_root)
+  _write_grid(dest_root, dict(tasks=list(dict.fromkeys(record["tasks"] + list(tasks))),
+                              columns=list(dict.fromkeys(record["columns"] + list(grid_columns))),
+                              skipped=record["skipped"]))
 
 
 def record_skip(dest_root: str, task: str, column: str, reason) -> None:
