@@ -210,9 +210,13 @@ def render(rows: List[Dict]) -> str:
   if estimated:
     unknown = [f"{r['task']} x {r['encoder']}" for r in rows
                if r.get("left") is None and r["state"] not in ("done", "skipped")]
-    lines.append(f"About {sum(r['left'] or 0.0 for r in rows):.1f} core-hours left, at the rates of the finished "
-                 "stages (collections and caches not counted)"
-                 + (f"; no rate yet for {', '.join(unknown)}" if unknown else "") + ".")
+    if unknown and not any(r.get("left") is not None for r in rows):
+      lines.append("No estimate of the core-hours left yet: no stage of these runs' columns or encoders has finished "
+                   "to take a rate from.")
+    else:
+      lines.append(f"About {sum(r['left'] or 0.0 for r in rows):.1f} core-hours left, at the rates of the finished "
+                   "stages (collections and caches not counted)"
+                   + (f"; no rate yet for {', '.join(unknown)}" if unknown else "") + ".")
   return "\n".join(lines)
 
 

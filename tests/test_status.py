@@ -147,6 +147,9 @@ def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_c
   workdir = str(tmp_path / "grid")
   rundir.save_config(config, workdir)
   rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  assert status.render(list(rows.values())).endswith(   # nothing finished yet: no rate, so no sum of nothing
+      "No estimate of the core-hours left yet: no stage of these runs' columns or encoders has finished to take a "
+      "rate from.")
   steps = int(rows[("push", "state")]["config"].policy.train.steps)
   assert status.work(rows[("push", "state")]["config"], rows[("push", "state")]["run_dir"], "train_policy") == (
       0, steps)
