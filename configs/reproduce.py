@@ -19,9 +19,11 @@ Variants:
          columns are SAVi and the AE with policy.proprio=True (the robot's pose as one more token per frame, the
          option beyond the paper that the recipe study keeps: results/small/recipe/README.md; the columns:
          roboshape/encoders/columns.py); each serves the SAVi or AE its task's plain column pretrained
-         (pretrain.from_workdir) and starts once that run has ended. Resumable run by run. Each run's results are
-         copied to results/small/<task>_<column>/ as soon as it is evaluated (grid.publish), so the table survives
-         the machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending, how
+         (pretrain.from_workdir) and starts once that run has ended. Resumable run by run on the machine that holds the
+         workdir (a dataset collected again on another machine may differ in its bytes, and the report takes a
+         task's cells from one dataset: results/small/README.md). Each run's results are copied to
+         results/small/<task>_<column>/ as soon as it is evaluated (grid.publish), so the table survives the
+         machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending, how
          long each stage took and roughly how many core-hours are left. Two runs at once (grid.lanes=2), each
          pinned to one core, each logging to <run>/log.txt. Baselines whose weights are absent
          (config.baselines.*.path) are skipped, said in the report. One task's row alone:
