@@ -26,7 +26,7 @@ Variants:
          machine; `python -m roboshape.status <workdir>` says which runs are done, running or pending, how
          long each stage took and roughly how many core-hours are left. Two runs at once (grid.lanes=2), each
          pinned to one core, each logging to <run>/log.txt. Baselines whose weights are absent
-         (config.baselines.*.path) are skipped, said in the report. One task's row alone:
+         (config.baselines.*.path) are skipped when the grid starts, said in the report. One task's row alone:
          --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
          --config.pretrain.train_seeds="(0,)" for one training seed and one SAVi seed).
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.

@@ -112,7 +112,8 @@ def run_grid(config, workdir: str) -> None:
 
   A baseline (any encoder but SAVi) whose run raises `UserError` (e.g. its pretrained weights are absent) is
   recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
-  prints it as a "skipped: <reason>" line. Every run's config and workdir are checked before the first one starts.
+  prints it as a "skipped: <reason>" line. A baseline whose weight file is absent (Kind.available) is skipped so
+  before the first run starts. Every run's config and workdir are checked before the first one starts.
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
   go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt).
@@ -130,6 +131,7 @@ def run_grid(config, workdir: str) -> None:
         from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
         publish.record_grid(config.grid.publish, dict.fromkeys(t for t, _, _, _ in runs),
                             dict.fromkeys(c for _, c, _, _ in runs))
+      runs = _skip_unavailable(config, runs)
     lanes = int(config.grid.get("lanes", 1))
     if lanes > 1:
       _run_lanes(config, runs, lanes)
@@ -147,6 +149,23 @@ def run_grid(config, workdir: str) -> None:
     if "report" in config.stages:
       with disk_full_is_one_line("the report stage", workdir):
         importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+
+
+def _skip_unavailable(config, runs):
+  """The runs left after each baseline whose encoder is not available here (Kind.available: its weight file is
+  absent) is recorded as skipped, as a run that failed for that reason would be, before any run starts: the status
+  and the report say so from the grid's start, and no run starts only to fail."""
+  left = []
+  for task, column, sub, sub_dir in runs:
+    kind = encoders.get(sub.encoder)
+    if kind.baseline and kind.available is not None:
+      try:
+        kind.available(sub)
+      except UserError as e:
+        _finish_run(config, task, column, sub, sub_dir, str(e))
+        continue
+    left.append((task, column, sub, sub_dir))
+  return left
 
 
 def _run_lanes(config, runs, lanes: int) -> None:

@@ -514,6 +514,8 @@ def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
   config = reproduce.get_config("tiny")
   config.grid.encoders = ("savi", "dino")
   config.stages = ("train_policy", "report")
+  config.baselines.dino.path = str(tmp_path / "dino.pth")       # a file: the run starts, and its stage fails
+  (tmp_path / "dino.pth").write_bytes(b"not a checkpoint")
   calls = []
 
   class Stage:
@@ -535,6 +537,42 @@ def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
   assert "- skipped: SAVi on push: no evaluation results" in md
 
 
+def test_a_grid_skips_a_baseline_without_its_weight_file_before_any_run_starts(tmp_path, monkeypatch):
+  config = reproduce.get_config("tiny")
+  config.grid.encoders = ("savi", "r3m", "dino")
+  config.stages = ("train_policy",)
+  config.grid.publish = str(tmp_path / "published")
+  config.baselines.r3m.path = str(tmp_path / "absent" / "model.pt")
+  config.baselines.dino.path = str(tmp_path / "dino.pth")          # present: DINO runs
+  (tmp_path / "dino.pth").write_bytes(b"not a checkpoint")
+  calls = []
+
+  class Stage:
+    @staticmethod
+    def run(cfg, workdir):
+      calls.append((cfg.encoder, os.path.exists(os.path.join(
+          rundir.grid_run_dir(str(tmp_path / "grid"), "push", "r3m"), rundir.SKIPPED_FILE))))
+
+  monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
+  real_import = stages.importlib.import_module
+  monkeypatch.setattr(stages.importlib, "import_module",
+                      lambda name, *args, **kwargs: (Stage if name == "fake_train_policy"
+                                                     else real_import(name, *args, **kwargs)))
+  stages.run(config, str(tmp_path / "grid"))
+  assert calls == [("savi", True), ("dino", True)]                   # skipped before the first run started
+  reason = f"R3M ResNet-50 weights not found at {tmp_path / 'absent' / 'model.pt'}; download the official file"
+  skipped = json.load(open(tmp_path / "grid" / "push_r3m" / rundir.SKIPPED_FILE))["reason"]
+  assert skipped.startswith(reason) and "\n" not in skipped
+  assert publish.grid_record(config.grid.publish)["skipped"] == {"push_r3m": skipped}
+  (tmp_path / "absent").mkdir()
+  (tmp_path / "absent" / "model.pt").write_bytes(b"")            # the file is there now: R3M runs, unskipped
+  calls.clear()
+  stages.run(config, str(tmp_path / "grid"))
+  assert [e for e, _ in calls] == ["savi", "r3m", "dino"]
+  assert not os.path.exists(tmp_path / "grid" / "push_r3m" / rundir.SKIPPED_FILE)
+  assert publish.grid_record(config.grid.publish)["skipped"] == {}
+
+
 def test_a_full_disk_stops_the_grid_in_one_line_rather_than_skipping_the_run(tmp_path, monkeypatch):
   """A baseline's stage that meets a full disk (an OSError(ENOSPC) naming its file) is one DiskFull line naming the
   stage and the file, as every stage's is (stages.run), and it stops the grid: every later run would meet the same
@@ -544,6 +582,8 @@ def test_a_full_disk_stops_the_grid_in_one_line_rather_than_skipping_the_run(tmp
   config = reproduce.get_config("tiny")
   config.grid.encoders = ("savi", "dino")
   config.stages = ("train_policy", "report")
+  config.baselines.dino.path = str(tmp_path / "dino.pth")       # a file: the run starts, and its stage fails
+  (tmp_path / "dino.pth").write_bytes(b"not a checkpoint")
   dino_dir = rundir.grid_run_dir(str(tmp_path), "push", "dino")
   full = os.path.join(dino_dir, "policy", "summary.json")
 

@@ -61,6 +61,8 @@ def test_a_grid_in_lanes_skips_a_failed_baseline_and_stops_for_savi(tmp_path):
   config = reproduce.get_config("tiny")
   config.grid.encoders, config.grid.lanes, config.stages = ("savi", "r3m"), 2, ("cache",)
   config.grid.publish = str(tmp_path / "published")
+  config.baselines.r3m.path = str(tmp_path / "model.pt")      # a file: the run starts in its lane, and fails there
+  (tmp_path / "model.pt").write_bytes(b"")
   with pytest.raises(UserError, match=r"grid runs failed: push x savi \(.+\).*log\.txt"):
     stages.run(config, str(tmp_path / "grid"))    # no dataset: each run's cache stage fails with one line
   reason = json.load(open(tmp_path / "grid" / "push_r3m" / "SKIPPED.json"))["reason"]

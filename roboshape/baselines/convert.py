@@ -26,6 +26,13 @@ _LEAF_TO_TORCH = {"scale": "weight", "mean": "running_mean", "var": "running_var
 _IGNORED_SUFFIXES = ("num_batches_tracked",)
 
 
+def check_file(path: str, *, what: str, download: str) -> None:
+  """Raises UserError, saying where to get the file, when `path` is not a file (a check that reads nothing)."""
+  if not os.path.isfile(path):
+    raise UserError(f"{what} weights not found at {path}; download the official file from {download} and put it "
+                    "there (or point the config's path field to it). roboshape never downloads weights.")
+
+
 def load_state(path: str, *, what: str, download: str) -> Dict[str, Any]:
   """Unpickles a torch checkpoint file into a dict; tensors stay torch tensors (see `to_numpy`).
 
@@ -37,9 +44,7 @@ def load_state(path: str, *, what: str, download: str) -> Dict[str, Any]:
   Raises:
     UserError: the file is missing or is not a torch checkpoint holding a dict.
   """
-  if not os.path.isfile(path):
-    raise UserError(f"{what} weights not found at {path}; download the official file from {download} and put it "
-                    "there (or point the config's path field to it). roboshape never downloads weights.")
+  check_file(path, what=what, download=download)
   import torch  # pylint: disable=import-outside-toplevel
   try:
     try:

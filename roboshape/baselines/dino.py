@@ -37,6 +37,17 @@ def default_path(arch: str) -> str:
   return os.path.join(torch_home, "hub", "checkpoints", f"{_FILES[arch]}.pth")
 
 
+def weights_path(cfg) -> str:
+  """The weight file config.baselines.dino names: its path, or `default_path(arch)` where path is ""."""
+  return os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
+
+
+def check_weights(cfg) -> None:
+  """Raises UserError when `weights_path(cfg)` is not a file (reads nothing; `load_encoder` checks the contents)."""
+  download = download_url(cfg.arch) if cfg.arch in _FILES else "https://github.com/facebookresearch/dino"
+  convert.check_file(weights_path(cfg), what=_NAMES.get(cfg.arch, "DINO"), download=download)
+
+
 def _backbone_state(state):
   """The backbone's state_dict from a pretrain file (itself) or a full training checkpoint (its teacher)."""
   if isinstance(state.get("teacher"), dict):
@@ -86,7 +97,7 @@ def load_encoder(cfg, resolution: int) -> FrozenEncoder:
   if side < MIN_SIDE:
     raise UserError(f"DINO needs frames of at least {MIN_SIDE} x {MIN_SIDE} pixels, got {side}")
   patch_tokens = bool(cfg.get("patch_tokens", False))
-  path = os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
+  path = weights_path(cfg)
   model, params = load_params(path, cfg.arch)
   return FrozenEncoder(
       name="dino",

@@ -31,6 +31,16 @@ def default_path(arch: str) -> str:
   return os.path.join(os.path.expanduser("~"), ".r3m", f"r3m_{arch[len('resnet'):]}", "model.pt")
 
 
+def weights_path(cfg) -> str:
+  """The weight file config.baselines.r3m names: its path, or `default_path(arch)` where path is ""."""
+  return os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
+
+
+def check_weights(cfg) -> None:
+  """Raises UserError when `weights_path(cfg)` is not a file (reads nothing; `load_encoder` checks the contents)."""
+  convert.check_file(weights_path(cfg), what=_NAMES.get(cfg.arch, "R3M"), download=DOWNLOAD_PAGE)
+
+
 # The batch runs through the ResNet as this many independent slices. XLA's CPU backend executes independent
 # convolutions concurrently, which keeps the cores busier than one convolution split across them (the gain on the
 # 2-core CPU: results/small/README.md). Every frame's numbers are unchanged; the graph is this many times larger.
@@ -78,7 +88,7 @@ def load_encoder(cfg, resolution: int) -> FrozenEncoder:
   input_size = int(cfg.get("input_size", 224))
   if (input_size or resolution) < MIN_SIDE:
     raise UserError(f"R3M needs inputs of at least {MIN_SIDE} x {MIN_SIDE} pixels, got {input_size or resolution}")
-  path = os.path.expanduser(cfg.path) if cfg.path else default_path(cfg.arch)
+  path = weights_path(cfg)
   _, variables = load_params(path, cfg.arch)
   # Inference BatchNorm is an affine map per channel: folded into the convs once here, it costs nothing per step.
   model, params = resnet.resnet(cfg.arch, folded=True), resnet.fold_batchnorm(variables)

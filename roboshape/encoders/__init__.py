@@ -78,6 +78,9 @@ class Kind:
       sections: their ranges (roboshape/ranges.py, declared in its module) and the constraints between them and
       the frames; config_check runs it before any stage, the pretraining loop when it starts. None: nothing to
       check.
+    available: config -> None, raising UserError when what the encoder is built from is absent here (its weight
+      file), without reading it: the grid asks it of every run before the first starts and skips a baseline that is
+      not available at once (roboshape/stages.py). None: nothing to look for.
     baseline: a comparison for the encoder under study (SAVi, the one registered with False): a grid's run of it
       that fails on bad input (e.g. absent weights) is skipped and said in the report, where a failure of the
       encoder under study stops the grid.
@@ -94,6 +97,7 @@ class Kind:
   model: Optional[PretrainModel] = None
   sections: Tuple[str, ...] = ()
   check: Optional[Callable] = None
+  available: Optional[Callable] = None
   baseline: bool = True
   slot_videos: bool = False
 

@@ -36,6 +36,18 @@ def check_dino(config) -> None:
   _check_section(config, "dino", vit.ARCHS, dino.MIN_SIDE)
 
 
+def available_r3m(config) -> None:
+  """Its weight file is there (roboshape.baselines.r3m.check_weights)."""
+  from roboshape.baselines import r3m  # pylint: disable=import-outside-toplevel
+  r3m.check_weights(config.baselines.r3m)
+
+
+def available_dino(config) -> None:
+  """Its weight file is there (roboshape.baselines.dino.check_weights)."""
+  from roboshape.baselines import dino  # pylint: disable=import-outside-toplevel
+  dino.check_weights(config.baselines.dino)
+
+
 def _r3m(config, workdir: str):
   del workdir
   from roboshape.baselines import r3m  # pylint: disable=import-outside-toplevel
@@ -51,8 +63,8 @@ def _dino(config, workdir: str):
 encoders.register(encoders.Kind(
     name="r3m", inputs=("image",), pretrain="", build=_r3m, title="R3M",
     description="R3M ResNet from the official weights (one global token)",
-    sections=("baselines.r3m",), check=check_r3m))
+    sections=("baselines.r3m",), check=check_r3m, available=available_r3m))
 encoders.register(encoders.Kind(
     name="dino", inputs=("image",), pretrain="", build=_dino, title="DINO",
     description="DINO ViT from the official weights (the CLS token, optionally the patch tokens)",
-    sections=("baselines.dino",), check=check_dino))
+    sections=("baselines.dino",), check=check_dino, available=available_dino))
