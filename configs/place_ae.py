@@ -4,10 +4,11 @@ frame).
 
 Command:  python launch.py --config=configs/place_ae.py:small --workdir=runs/place_ae
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime:  under an hour on one core at :small; on place the behaviour cloning takes three times the steps (15000),
-          plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage
-          times: results/small/README.md.
-Results:  results/small/place_ae/README.md (not published yet: the `:small` grid publishes it)
+Runtime:  about three and a half hours on one core at :small (place's behaviour cloning takes three times push's
+          steps, 15000, and its evaluation about an hour), plus the task's collection (2000 demos: about 45 minutes
+          on one core, shared by its runs); each cell's stage times: its stages.json, summed in
+          results/small/report/report.md.
+Results:  results/small/place_ae/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 Its pretrain stage is roboshape/train/pretrain.py; ae.latent_size sets the token width (0: savi.slot_size).
 """
