@@ -11,10 +11,13 @@ training stage says which seed it is at and that seed's newest saved step ("runn
 evaluation how many rollouts its logs hold.
 
 A grid's table ends with a rough estimate of the core-hours its unfinished runs have left (`estimate_left`): each
-unfinished training or evaluation stage's remaining work (training steps over its seeds, rollouts) at the core-seconds
-per unit that the finished stages of its column (else of its encoder, for a column with options) took. It does not
-count collections and caches (minutes a run; a task's collection is shared), nor that rollouts of a longer horizon
-cost more than the ones it was measured on.
+unfinished training or evaluation stage's remaining work (training steps over its seeds, rollouts) at a rate in
+core-seconds per unit: a training stage's own pace between its two newest checkpoints of this attempt (`pace`), else
+what the finished stages of its column (else of its encoder, for a column with options) took, else the unfinished
+ones' pace or logged time over their saved work (the latter an overestimate by the work lost to kills and by the
+compilations); an evaluation of a column none of whose rollouts are done takes every column's rate (the simulator and
+renderer dominate it). It does not count collections and caches (minutes a run; a task's collection is shared), nor
+that rollouts of a longer horizon cost more than the ones it was measured on.
 """
 import os
 import sys
@@ -82,6 +85,32 @@ def work(config, run_dir: str, stage: str) -> Optional[Tuple[int, int]]:
   return sum(at), total
 
 
+def pace(config, run_dir: str, stage: str, since: float, cores: int = 1) -> Optional[Tuple[float, int]]:
+  """(core-seconds, steps) between the two newest checkpoints of the seed a training stage (pretrain, train_policy)
+  saved last, when both were written after `since` (the epoch time its current attempt began, so no stop lies between
+  them): the pace the stage trains at now, without the compilations and the work lost to kills that its logged
+  time holds. None when there are no such two checkpoints."""
+  if stage == "pretrain" and not config.pretrain.get("from_workdir"):
+    stage_dir, section = rundir.pretrain_dir(run_dir, config.encoder), "pretrain"
+  elif stage == "train_policy":
+    stage_dir, section = rundir.policy_dir(run_dir), "policy"
+  else:
+    return None
+  newest = None
+  for seed in rundir.train_seeds(config, section):
+    folder = rundir.checkpoints(rundir.seed_dir(stage_dir, seed))
+    saved = [(os.path.getmtime(os.path.join(folder, str(step))), step)
+             for step in rundir.saved_steps(rundir.seed_dir(stage_dir, seed))[-2:]]
+    if len(saved) == 2 and (newest is None or saved[1][0] > newest[1][0]):
+      newest = saved
+  if newest is None:
+    return None
+  (t0, s0), (t1, s1) = newest
+  if t0 < since or t1 <= t0 or s1 <= s0:
+    return None
+  return (t1 - t0) * cores, s1 - s0
+
+
 def progress(config, run_dir: str, stage: str) -> str:
   """How far an unfinished stage of a run got, from what it saved: its training seeds' checkpoints (pretrain,
   train_policy) or the rollouts in its logs (evaluate); "" for the other stages."""
@@ -127,23 +156,41 @@ def run_status(stages, run_dir: str, config=None) -> Dict:
   return dict(state=state, stages=per_stage, seconds=sum(t[0] for t in times),
               core_hours=sum(t[1] for t in times) / 3600,
               stage_core_seconds={stage: rundir.logged_time(entry)[1] for stage, entry in log.items()
-                                  if isinstance(entry, dict)})
+                                  if isinstance(entry, dict)},
+              attempts={stage: (float(entry["attempt"]), int(entry.get("cores", 1))) for stage, entry in log.items()
+                        if isinstance(entry, dict) and entry.get("state") == "running" and "attempt" in entry})
 
 
 def estimate_left(rows: List[Dict]) -> None:
   """Sets each unfinished run's row's `left`: the rough core-hours its stages of ESTIMATED have left (module
-  docstring), None where no finished stage of its column or encoder gives a rate; None too for a done or skipped
-  run. Rows need `config` and `run_dir` (`workdir_status` gives them)."""
-  def keys(column, stage):                      # its column's rate, else its encoder's (a column with options)
-    return tuple(dict.fromkeys(((column, stage), (columns.parse(column)[0], stage))))
+  docstring), None where neither its own pace nor any stage of its column or encoder gives a rate; None too for a
+  done or skipped run. Rows need `config` and `run_dir` (`workdir_status` gives them)."""
+  def keys(column, stage):   # its column's rate, else its encoder's (a column with options), else any column's rollouts
+    return tuple(dict.fromkeys(((column, stage), (columns.parse(column)[0], stage))
+                               + ((("*", stage),) if stage == "evaluate" else ())))
 
-  spent, units = {}, {}
+  def measured(r, stage):
+    """(core-seconds, units, how) a stage of a row measured, or None: a finished stage's whole work ("finished"),
+    else an unfinished one's `pace` ("pace"), else its logged time over the work it saved ("saved")."""
+    state = r["stages"].get(stage, "pending")
+    if isinstance(state, (int, float)):
+      units = planned(r["config"], stage)
+      return (r["stage_core_seconds"].get(stage, 0.0), units, "finished") if units else None
+    if state == "pending":
+      return None
+    now = pace(r["config"], r["run_dir"], stage, *r["attempts"][stage]) if stage in r.get("attempts", {}) else None
+    if now:
+      return now + ("pace",)
+    done = (work(r["config"], r["run_dir"], stage) or (0, 0))[0]
+    return (r["stage_core_seconds"].get(stage, 0.0), done, "saved") if done else None
+
+  spent, units = {}, {}                 # per (key, unfinished): the finished stages' rates, then the unfinished ones'
   for r in rows:
     for stage in ESTIMATED:
-      if isinstance(r["stages"].get(stage), (int, float)):            # finished: its work is what was planned
-        for key in keys(r["encoder"], stage):
-          spent[key] = spent.get(key, 0.0) + r["stage_core_seconds"].get(stage, 0.0)
-          units[key] = units.get(key, 0) + planned(r["config"], stage)
+      m = measured(r, stage)
+      for key in keys(r["encoder"], stage) if m else ():
+        key = key + (m[2] != "finished",)
+        spent[key], units[key] = spent.get(key, 0.0) + m[0], units.get(key, 0) + m[1]
   for r in rows:
     r["left"] = None
     if r["state"] in ("done", "skipped"):
@@ -155,11 +202,17 @@ def estimate_left(rows: List[Dict]) -> None:
       done, total = work(r["config"], r["run_dir"], stage)
       if total <= done:
         continue
-      key = next((k for k in keys(r["encoder"], stage) if units.get(k)), None)
-      if key is None:
-        left = None
-        break
-      left += (total - done) * spent[key] / units[key] / 3600
+      own = measured(r, stage)
+      if own and own[2] == "pace":
+        rate = own[0] / own[1]                                          # its own pace, now
+      else:
+        key = next((k + (partial,) for partial in (False, True) for k in keys(r["encoder"], stage)
+                    if units.get(k + (partial,))), None)
+        if key is None:
+          left = None
+          break
+        rate = spent[key] / units[key]
+      left += (total - done) * rate / 3600
     r["left"] = left
 
 
@@ -212,10 +265,10 @@ def render(rows: List[Dict]) -> str:
                if r.get("left") is None and r["state"] not in ("done", "skipped")]
     if unknown and not any(r.get("left") is not None for r in rows):
       lines.append("No estimate of the core-hours left yet: no stage of these runs' columns or encoders has finished "
-                   "to take a rate from.")
+                   "or saved work to take a rate from.")
     else:
-      lines.append(f"About {sum(r['left'] or 0.0 for r in rows):.1f} core-hours left, at the rates of the finished "
-                   "stages (collections and caches not counted)"
+      lines.append(f"About {sum(r['left'] or 0.0 for r in rows):.1f} core-hours left, at the training stages' own "
+                   "pace and the rates of the finished stages (collections and caches not counted)"
                    + (f"; no rate yet for {', '.join(unknown)}" if unknown else "") + ".")
   return "\n".join(lines)
 

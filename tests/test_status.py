@@ -148,8 +148,8 @@ def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_c
   rundir.save_config(config, workdir)
   rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
   assert status.render(list(rows.values())).endswith(   # nothing finished yet: no rate, so no sum of nothing
-      "No estimate of the core-hours left yet: no stage of these runs' columns or encoders has finished to take a "
-      "rate from.")
+      "No estimate of the core-hours left yet: no stage of these runs' columns or encoders has finished or saved "
+      "work to take a rate from.")
   steps = int(rows[("push", "state")]["config"].policy.train.steps)
   assert status.work(rows[("push", "state")]["config"], rows[("push", "state")]["run_dir"], "train_policy") == (
       0, steps)
@@ -174,8 +174,52 @@ def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_c
   assert [line for line in text.splitlines() if line.startswith("| pick | state | stopped |")][0].endswith(
       f"| ~{rows[('pick', 'state')]['left']:.1f} |")
   assert text.endswith(f"About {3.0 + 3.0 + rows[('pick', 'state')]['left']:.1f} core-hours left, at the "
-                       "rates of the finished stages (collections and caches not counted); no rate yet for push x "
-                       "objects, pick x objects.")
+                       "training stages' own pace and the rates of the finished stages (collections and caches not "
+                       "counted); no rate yet for push x objects, pick x objects.")
+
+
+def test_a_running_training_stage_is_estimated_at_its_own_pace_between_checkpoints_of_this_attempt(tmp_path):
+  config = common.get_config("push", "state", "tiny")
+  config.grid = dict(tasks=("push", "pick"), encoders=("state",), publish="")
+  config.policy.train_seeds, config.policy.train.steps = (0, 1), 1000
+  workdir = str(tmp_path / "grid")
+  rundir.save_config(config, workdir)
+  run = rundir.grid_run_dir(workdir, "push", "state")
+  rundir.record_stage(run, "train_policy", "running")                    # this process: alive, on these cores
+  log = rundir.read_stage_log(run)
+  entry = log["train_policy"]
+  log["train_policy"]["seconds"] = log["train_policy"]["core_seconds"] = 9000.0   # earlier attempts, killed
+  with open(rundir.stage_log_path(run), "w") as f:
+    json.dump(log, f)
+  seed_1 = rundir.checkpoints(rundir.policy_dir(run, 1))
+  os.makedirs(os.path.join(rundir.checkpoints(rundir.policy_dir(run, 0)), "1000"))
+  for step, written in ((200, 10.0), (300, 110.0)):                     # 100 steps in 100 s of this attempt
+    os.makedirs(os.path.join(seed_1, str(step)))
+    os.utime(os.path.join(seed_1, str(step)), (entry["attempt"] + written,) * 2)
+  cores = entry["cores"]
+  assert status.pace(config, run, "train_policy", entry["attempt"], cores) == (100.0 * cores, 100)
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  # push x state: 700 steps left at 1 s x cores a step (not the 9000 logged core-seconds over 1300 saved steps);
+  # its evaluation and pick's whole run have no rate from anything finished: pick's training takes push's pace
+  assert rows[("push", "state")]["left"] is None and rows[("pick", "state")]["left"] is None
+  push_rate = 100.0 * cores / 100
+  done_eval = rundir.grid_run_dir(workdir, "pick", "objects")             # another column's finished evaluation
+  os.makedirs(done_eval)
+  with open(rundir.stage_log_path(done_eval), "w") as f:
+    json.dump({"evaluate": dict(state="done", seconds=360.0, core_seconds=360.0)}, f)
+  rows = status.workdir_status(workdir)
+  rows.append(dict(task="pick", encoder="objects", run_dir=done_eval, config=config,
+                   **status.run_status(("evaluate",), done_eval, config)))
+  status.estimate_left(rows)
+  rows = {(r["task"], r["encoder"]): r for r in rows}
+  eval_left = 360.0 / 3600
+  assert rows[("push", "state")]["left"] == pytest.approx(700 * push_rate / 3600 + eval_left)
+  assert rows[("pick", "state")]["left"] == pytest.approx(2000 * push_rate / 3600 + eval_left)
+  # a pair of checkpoints that straddles the attempt's start (a stop between them) gives no pace
+  os.utime(os.path.join(seed_1, "200"), (entry["attempt"] - 50.0,) * 2)
+  assert status.pace(config, run, "train_policy", entry["attempt"], cores) is None
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  assert rows[("push", "state")]["left"] is None                          # its evaluation still has no rate
 
 
 def test_an_unfinished_stage_says_how_far_its_seeds_and_rollouts_got(tmp_path):
