@@ -99,8 +99,11 @@ def pace(config, run_dir: str, stage: str, since: float, cores: int = 1) -> Opti
   newest = None
   for seed in rundir.train_seeds(config, section):
     folder = rundir.checkpoints(rundir.seed_dir(stage_dir, seed))
-    saved = [(os.path.getmtime(os.path.join(folder, str(step))), step)
-             for step in rundir.saved_steps(rundir.seed_dir(stage_dir, seed))[-2:]]
+    try:                  # (a running stage may delete its oldest checkpoint between the listing and the reading)
+      saved = [(os.path.getmtime(os.path.join(folder, str(step))), step)
+               for step in rundir.saved_steps(rundir.seed_dir(stage_dir, seed))[-2:]]
+    except OSError:
+      continue
     if len(saved) == 2 and (newest is None or saved[1][0] > newest[1][0]):
       newest = saved
   if newest is None:
