@@ -203,7 +203,8 @@ def _run_lanes(config, runs, lanes: int) -> None:
 
 def _finish_run(config, task: str, column: str, sub, sub_dir: str, error) -> None:
   """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi
-  (Kind.baseline); a run that ended well loses an old SKIPPED.json and is published when the grid publishes."""
+  (Kind.baseline); a run that ended well loses an old SKIPPED.json and is published when the grid publishes (or
+  says in a line why not, e.g. its task's published cells were trained on another dataset, and the grid goes on)."""
   from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
   dest = config.grid.get("publish")
   skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
@@ -221,8 +222,10 @@ def _finish_run(config, task: str, column: str, sub, sub_dir: str, error) -> Non
   if dest:
     publish.record_skip(dest, task, column, None)
   if dest and "evaluate" in sub.stages:
-    print(f"[roboshape] published {task} x {column} to {publish.publish(sub, sub_dir, config.grid.publish)}",
-          flush=True)
+    try:
+      print(f"[roboshape] published {task} x {column} to {publish.publish(sub, sub_dir, dest)}", flush=True)
+    except UserError as e:      # e.g. its row in `dest` is on another dataset: the run stays in its workdir
+      print(f"[roboshape] not published: {e}", flush=True)
 
 
 def _import_stage(name: str, module_name: str):

@@ -375,11 +375,49 @@ def test_publish_records_the_dataset_and_takes_the_encoder_files_of_the_run_that
   proprio.pretrain.from_workdir = workdir
   other = str(tmp_path / "proprio")
   shutil.copytree(workdir, other, ignore=shutil.ignore_patterns("savi", "data"))
+  own = {"identity": data_lib.identity(state), "name": "its own record"}
   with open(rundir.dataset_record(other), "w") as f:
-    json.dump({"identity": "own"}, f)
+    json.dump(own, f)
   dest = publish.publish(proprio, other, root)
   assert dest == os.path.join(root, "push_savi+proprio")
   with open(os.path.join(dest, "savi_val_metrics.json")) as f:
     assert f.read() == "[1]"
   with open(os.path.join(dest, "dataset.json")) as f:
-    assert json.load(f) == {"identity": "own"}
+    assert json.load(f) == own
+
+
+def test_publish_refuses_a_cell_on_another_dataset_than_its_published_row_and_the_grid_goes_on(tmp_path, capsys):
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  config, workdir = _finished_run(tmp_path, "state")
+  root = str(tmp_path / "results")
+  with open(rundir.dataset_record(workdir), "w") as f:
+    json.dump({"identity": "aaaa"}, f)
+  publish.publish(config, workdir, root)                                  # push x state on dataset aaaa
+  pick = common.get_config("pick", "state", "tiny")                       # another task's row: not compared
+  with open(rundir.config_path(workdir), "w") as f:
+    f.write(pick.to_json())
+  publish.publish(pick, workdir, root)
+  with open(rundir.config_path(workdir), "w") as f:
+    f.write(config.to_json())
+  savi, other = _finished_run(tmp_path / "second")
+  with open(rundir.dataset_record(other), "w") as f:
+    json.dump({"identity": "bbbb"}, f)
+  before = sorted(os.listdir(root))
+  with pytest.raises(UserError, match=r"push x savi was trained on dataset bbbb, but the push cells in .* on "
+                                      r"another \(push_state on aaaa\): publish this row into another folder"):
+    publish.publish(savi, other, root)
+  assert sorted(os.listdir(root)) == before == ["pick_state", "push_state"]
+  # The grid says so in one line and goes on; the same run on the row's dataset is published.
+  grid = common.get_config("push", "state", "tiny")
+  grid.grid = dict(tasks=("push",), encoders=("savi",), publish=root)
+  stages._finish_run(grid, "push", "savi", savi, other, None)   # pylint: disable=protected-access
+  assert "[roboshape] not published: push x savi was trained on dataset bbbb" in capsys.readouterr().out
+  assert not os.path.exists(os.path.join(root, "push_savi"))
+  with open(rundir.dataset_record(other), "w") as f:
+    json.dump({"identity": "aaaa"}, f)
+  stages._finish_run(grid, "push", "savi", savi, other, None)   # pylint: disable=protected-access
+  assert "[roboshape] published push x savi" in capsys.readouterr().out
+  with pytest.raises(UserError, match="is damaged"):                      # a damaged record of the row: one line
+    with open(os.path.join(root, "push_state", "dataset.json"), "w") as f:
+      f.write("{")
+    publish.publish(savi, other, root)

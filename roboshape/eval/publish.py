@@ -2,6 +2,7 @@
 
   publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<column>/
   check_datasets({(task, column): folder})   # UserError when cells of one task name different datasets
+                                             # (publish refuses a cell that would make its row such a mix)
   record_grid(dest_root, tasks, columns); record_skip(dest_root, task, column, reason); grid_record(dest_root)
 
 The folder is named after the run's column (roboshape/encoders/columns.py): its encoder, with its options
@@ -95,7 +96,8 @@ def publish(config, workdir: str, dest_root: str) -> str:
   a dataset.json of its own (its collect stage ran before runs recorded one) gets one made from its dataset's
   roboshape.json where that dataset still is.
 
-  Raises UserError when the run has no evaluation results yet (nothing is copied then)."""
+  Raises UserError when the run has no evaluation results yet, or when the cells of its task published in
+  `dest_root` were trained on another dataset than it (nothing is copied then)."""
   if not os.path.exists(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE)):
     raise UserError(f"{workdir} has no evaluation results ({rundir.RESULTS_FILE}) to publish: run its evaluate "
                     "stage first.")
@@ -105,6 +107,9 @@ def publish(config, workdir: str, dest_root: str) -> str:
   record = None if DATASET in names else data_lib.read_record(data_lib.dataset_path(config, workdir))
   if record is not None:
     names.add(DATASET)
+  own = record["identity"] if record is not None else (
+      _identity(rundir.dataset_record(workdir)) if DATASET in names else None)
+  _check_joins_its_row(config.task, columns.of_config(config), own, dest_root)
   if os.path.isdir(dest):
     kept = KEPT if _same_run(os.path.join(dest, "config.json"), rundir.config_path(workdir)) else ()
     for folder, _, files in os.walk(dest):
@@ -122,6 +127,43 @@ def publish(config, workdir: str, dest_root: str) -> str:
   return dest
 
 
+def _identity(path: str) -> str:
+  """The identity a dataset.json at `path` records; a UserError when it cannot be read."""
+  try:
+    with open(path, encoding="utf-8") as f:
+      return json.load(f)["identity"]
+  except (OSError, ValueError, KeyError, TypeError) as e:
+    raise UserError(f"{path} is damaged ({type(e).__name__}): publish that run again from its workdir, or "
+                    "restore the file from git.") from None
+
+
+def _check_joins_its_row(task: str, column: str, identity, dest_root: str) -> None:
+  """Raises UserError, before anything is copied, when the cells of `task` already published in `dest_root` (other
+  than this column's) record another dataset than `identity`: publishing there would make the folder's report
+  refuse the row (`check_datasets`). A run or cell without a recorded dataset is not compared."""
+  if identity is None or not os.path.isdir(dest_root):
+    return
+  others = {}
+  for name in sorted(os.listdir(dest_root)):
+    folder = os.path.join(dest_root, name)
+    if name == f"{task}_{column}" or not os.path.isfile(os.path.join(folder, DATASET)):
+      continue
+    try:
+      with open(os.path.join(folder, "config.json"), encoding="utf-8") as f:
+        if json.load(f).get("task") != task:
+          continue
+    except (OSError, ValueError, AttributeError):
+      continue
+    found = _identity(os.path.join(folder, DATASET))
+    if found != identity:
+      others.setdefault(found, []).append(name)
+  if others:
+    cells = "; ".join(f"{', '.join(names)} on {found}" for found, names in sorted(others.items()))
+    raise UserError(f"{task} x {column} was trained on dataset {identity}, but the {task} cells in {dest_root} on "
+                    f"another ({cells}): publish this row into another folder (--config.grid.publish) and move it "
+                    "in once all its cells are done, or move the old cells out first.")
+
+
 def check_datasets(cells: Mapping[Tuple[str, str], str]) -> None:
   """Raises UserError, one line naming the cells, when published cells of one task ({(task, column): folder})
   record different datasets (their dataset.json identities): such cells were trained on other demos and do not
@@ -131,12 +173,7 @@ def check_datasets(cells: Mapping[Tuple[str, str], str]) -> None:
     path = os.path.join(folder, DATASET)
     if not os.path.isfile(path):
       continue
-    try:
-      with open(path, encoding="utf-8") as f:
-        identity = json.load(f)["identity"]
-    except (OSError, ValueError, KeyError, TypeError) as e:
-      raise UserError(f"{path} is damaged ({type(e).__name__}): publish that run again from its workdir, or "
-                      "restore the file from git.") from None
+    identity = _identity(path)
     by_task.setdefault(task, {}).setdefault(identity, []).append(os.path.normpath(folder))
   for task, found in by_task.items():
     if len(found) > 1:
