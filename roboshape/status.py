@@ -187,14 +187,15 @@ def estimate_left(rows: List[Dict]) -> None:
     done = (work(r["config"], r["run_dir"], stage) or (0, 0))[0]
     return (r["stage_core_seconds"].get(stage, 0.0), done, "saved") if done else None
 
+  found = {(i, stage): measured(r, stage) for i, r in enumerate(rows) for stage in ESTIMATED}
   spent, units = {}, {}                 # per (key, unfinished): the finished stages' rates, then the unfinished ones'
-  for r in rows:
+  for i, r in enumerate(rows):
     for stage in ESTIMATED:
-      m = measured(r, stage)
+      m = found[i, stage]
       for key in keys(r["encoder"], stage) if m else ():
         key = key + (m[2] != "finished",)
         spent[key], units[key] = spent.get(key, 0.0) + m[0], units.get(key, 0) + m[1]
-  for r in rows:
+  for i, r in enumerate(rows):
     r["left"] = None
     if r["state"] in ("done", "skipped"):
       continue
@@ -205,7 +206,7 @@ def estimate_left(rows: List[Dict]) -> None:
       done, total = work(r["config"], r["run_dir"], stage)
       if total <= done:
         continue
-      own = measured(r, stage)
+      own = found[i, stage]
       if own and own[2] == "pace":
         rate = own[0] / own[1]                                          # its own pace, now
       else:
