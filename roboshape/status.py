@@ -41,6 +41,16 @@ def _alive(pid) -> bool:
 ESTIMATED = ("pretrain", "train_policy", "evaluate")   # the stages `estimate_left` counts
 
 
+def _training(config, run_dir: str, stage: str) -> Optional[Tuple[str, str]]:
+  """(its folder, its config section) of a training stage that trains in this run: pretrain (unless it reuses
+  another run's encoder) or train_policy; None for the other stages."""
+  if stage == "pretrain" and not config.pretrain.get("from_workdir"):
+    return rundir.pretrain_dir(run_dir, config.encoder), "pretrain"
+  if stage == "train_policy":
+    return rundir.policy_dir(run_dir), "policy"
+  return None
+
+
 def _seed_steps(config, stage_dir: str, stage: str) -> Tuple[List[int], int]:
   """([newest saved step of each seed of a training stage, 0 without a checkpoint], the stage's steps)."""
   steps = int(config[stage].train.steps)
@@ -80,8 +90,7 @@ def work(config, run_dir: str, stage: str) -> Optional[Tuple[int, int]]:
     return None if total is None else (0, 0)
   if stage == "evaluate":
     return sum(len(results_lib.read_log(rundir.rollout_log(run_dir, s))) for s in rundir.train_seeds(config)), total
-  at, _ = (_seed_steps(config, rundir.pretrain_dir(run_dir, config.encoder), "pretrain") if stage == "pretrain"
-           else _seed_steps(config, rundir.policy_dir(run_dir), "policy"))
+  at, _ = _seed_steps(config, *_training(config, run_dir, stage))
   return sum(at), total
 
 
@@ -90,18 +99,16 @@ def pace(config, run_dir: str, stage: str, since: float, cores: int = 1) -> Opti
   saved last, when both were written after `since` (the epoch time its current attempt began, so no stop lies between
   them): the pace the stage trains at now, without the compilations and the work lost to kills that its logged
   time holds. None when there are no such two checkpoints."""
-  if stage == "pretrain" and not config.pretrain.get("from_workdir"):
-    stage_dir, section = rundir.pretrain_dir(run_dir, config.encoder), "pretrain"
-  elif stage == "train_policy":
-    stage_dir, section = rundir.policy_dir(run_dir), "policy"
-  else:
+  training = _training(config, run_dir, stage)
+  if training is None:
     return None
+  stage_dir, section = training
   newest = None
   for seed in rundir.train_seeds(config, section):
-    folder = rundir.checkpoints(rundir.seed_dir(stage_dir, seed))
+    seed_dir = rundir.seed_dir(stage_dir, seed)
     try:                  # (a running stage may delete its oldest checkpoint between the listing and the reading)
-      saved = [(os.path.getmtime(os.path.join(folder, str(step))), step)
-               for step in rundir.saved_steps(rundir.seed_dir(stage_dir, seed))[-2:]]
+      saved = [(os.path.getmtime(os.path.join(rundir.checkpoints(seed_dir), str(step))), step)
+               for step in rundir.saved_steps(seed_dir)[-2:]]
     except OSError:
       continue
     if len(saved) == 2 and (newest is None or saved[1][0] > newest[1][0]):
@@ -117,10 +124,9 @@ def pace(config, run_dir: str, stage: str, since: float, cores: int = 1) -> Opti
 def progress(config, run_dir: str, stage: str) -> str:
   """How far an unfinished stage of a run got, from what it saved: its training seeds' checkpoints (pretrain,
   train_policy) or the rollouts in its logs (evaluate); "" for the other stages."""
-  if stage == "pretrain" and not config.pretrain.get("from_workdir"):
-    return _training_progress(config, rundir.pretrain_dir(run_dir, config.encoder), "pretrain")
-  if stage == "train_policy":
-    return _training_progress(config, rundir.policy_dir(run_dir), "policy")
+  training = _training(config, run_dir, stage)
+  if training is not None:
+    return _training_progress(config, *training)
   if stage == "evaluate":
     done, total = work(config, run_dir, stage)
     return f"{done}/{total} rollouts"
