@@ -27,6 +27,7 @@ import tqdm
 
 from roboshape import data as data_lib
 from roboshape import fileio
+from roboshape import progress as progress_lib
 from roboshape import rundir
 from roboshape.errors import DiskFull
 from roboshape.errors import UserError
@@ -149,8 +150,8 @@ class _SplitCollector:
     self.frames = 0
     self.start = time.time()
     self.new_successes = self.new_failures = 0
-    self.bar = tqdm.tqdm(total=self.target, initial=self.kept, unit="ep", dynamic_ncols=True, disable=not progress,
-                         desc=f"collect {writer.task} {split}")
+    self.bar = progress_lib.bar(total=self.target, initial=self.kept, unit="ep", dynamic_ncols=True,
+                                disable=not progress, desc=f"collect {writer.task} {split}")
 
   def run(self) -> Dict[str, Any]:
     try:

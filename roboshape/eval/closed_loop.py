@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 from roboshape import envs
 from roboshape import fileio
+from roboshape import progress
 from roboshape import rundir
 from roboshape.encoders import columns
 from roboshape.envs.palettes import LEVEL_NAMES
@@ -110,7 +111,7 @@ def run_rollouts(pool, policy, rollouts: Sequence[Rollout], on_done: OnDone, rec
   retries = collections.Counter()
   policy.reset(batch_size=n)
   stats = {"done": initial[0], "success": initial[1]}
-  bar = tqdm(total=initial[0] + len(queue), initial=initial[0], desc=desc, unit="rollout", dynamic_ncols=True)
+  bar = progress.bar(total=initial[0] + len(queue), initial=initial[0], desc=desc, unit="rollout", dynamic_ncols=True)
 
   def finish(r, result, frames):
     on_done(r, result, frames)

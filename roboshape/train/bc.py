@@ -31,6 +31,7 @@ import optax
 from tqdm import tqdm
 
 from roboshape import fileio
+from roboshape import progress
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
@@ -325,7 +326,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   val = {}
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
   try:
-    for step in tqdm(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
+    for step in progress.bar(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
       batch = dp.put_batch(train_w.sample(tc.batch_size, seed, step))
       previous = metrics
       state, metrics = train_step(state, batch, base_rng)

@@ -20,9 +20,9 @@ import os
 from typing import Dict, Iterable, List, Optional
 
 import numpy as np
-from tqdm import tqdm
 
 from roboshape import fileio
+from roboshape import progress
 from roboshape import rundir
 from roboshape.errors import UserError
 
@@ -115,7 +115,7 @@ def encode_split(encoder, episodes: Iterable[dict], out_dir: str, dtype: str = "
   while os.path.exists(os.path.join(out_dir, f"shard_{done:05d}.npz")):
     done += 1
   count, shard = 0, []
-  bar = tqdm(desc=desc, unit="episode")
+  bar = progress.bar(desc=desc, unit="episode")
   def flush_shard(index):
     # Sort by length inside the shard so padded batches waste little.
     order = sorted(range(len(shard)), key=lambda i: len(shard[i]["image"]))

@@ -48,6 +48,7 @@ import optax
 
 from roboshape import encoders
 from roboshape import fileio
+from roboshape import progress
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
@@ -271,7 +272,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
     writer = scalars.Scalars(os.path.join(root, "tb"))
     batches = batches_from(start)
     try:
-      for step in tqdm(range(start, tc.steps), initial=start, total=tc.steps, desc=f"pretrain {title}",
+      for step in progress.bar(range(start, tc.steps), initial=start, total=tc.steps, desc=f"pretrain {title}",
                        smoothing=0.1):
         batch = next(batches)
         if step == start and tuple(np.shape(batch["video"])) != _clip_shape(config):
