@@ -15,17 +15,20 @@ LOG_INTERVAL = 60.0      # seconds between a bar's lines in a file
 
 class _Lines:
   """A stream for tqdm that ends each redraw of the bar with a newline rather than starting it with a carriage
-  return; the blanks tqdm pads or clears a line with are dropped."""
+  return; the blanks tqdm pads or clears a line with are dropped, and so is a redraw the same as the line before
+  it (a closing bar draws its last state again)."""
 
   def __init__(self, stream: TextIO):
     self._stream = stream
+    self._last = None
 
   def write(self, text: str) -> None:
     line = text.replace("\r", "").rstrip()
-    if line:
+    if line and line != self._last:
       if sys.stdout is not None and self._stream is not sys.stdout:
         sys.stdout.flush()      # what was printed before this line comes before it where both share a file
       self._stream.write(line + "\n")
+      self._last = line
 
   def flush(self) -> None:
     self._stream.flush()

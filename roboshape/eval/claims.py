@@ -269,8 +269,9 @@ def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int
       len(a.cells[(t, e)].train_seeds) == 1 for e in (OBJECT_CENTRIC, *present) if (t, e) in a.cells)]
   text = [f"**Claim {number}: {title}**", judged] + lines
   if absent:
-    text.append(f"{_names(absent)}: no cell in this table (skipped or not run), so the claim is judged against "
-                f"{_names([tables.encoder_name(o) for o in present]) if present else 'nothing'} only.")
+    judged_against = (f", so the claim is judged against {_names([tables.encoder_name(o) for o in present])} only"
+                      if present else "")
+    text.append(f"{_names(absent)}: no cell in this table (skipped or not run){judged_against}.")
   if one_seed:
     text.append(f"On {_names(one_seed)} a cell has one training seed ({ONE_SEED_MARK}): its interval leaves out the "
                 "variation between training seeds.")
