@@ -276,15 +276,16 @@ def test_an_interrupted_policy_keeps_its_steps_and_resumes_to_the_uninterrupted_
   bc.train(config, straight, features)
   interrupted, features = _copy_run(policy_run, tmp_path / "interrupted")
 
-  class StopAfterFive(bc.tqdm):                      # Ctrl-C once five steps are done (no checkpoint is due)
-    def __iter__(self):
-      for i, step in enumerate(super().__iter__()):
-        if i == 5:
-          raise KeyboardInterrupt
-        yield step
+  bar = bc.progress.bar
+
+  def stop_after_five(*args, **kwargs):              # Ctrl-C once five steps are done (no checkpoint is due)
+    for i, step in enumerate(bar(*args, **kwargs)):
+      if i == 5:
+        raise KeyboardInterrupt
+      yield step
 
   with monkeypatch.context() as stop:
-    stop.setattr(bc, "tqdm", StopAfterFive)
+    stop.setattr(bc.progress, "bar", stop_after_five)
     with pytest.raises(KeyboardInterrupt):
       bc.train(config, interrupted, features)
   with Checkpointer(os.path.join(interrupted, "policy", "checkpoints")) as ckpt:
