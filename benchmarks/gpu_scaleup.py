@@ -1,6 +1,6 @@
 """The `:paper` train steps on one GPU, and the GPU-hours of the `:paper` grid they imply.
 
-Meant to run once on a lent GPU machine (one H200; JAX with its CUDA plugin; no TensorFlow, ManiSkill or SAPIEN;
+Meant to run once on a lent GPU machine (one H100 or H200; JAX with its CUDA plugin; no TensorFlow, ManiSkill or SAPIEN;
 ml_collections carried as a wheel in .whl/), from the repository root:
 
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
