@@ -170,9 +170,16 @@ def test_claim_1_reads_savi_beside_the_state_control_over_the_levels_both_have()
                     ("pick", "state"): dict(train=1.0, L1=0.9)})
   a = claims.answer(loaded, ["pick"], ["ae", "savi", "state"], ["train", "L1", "L2"])
   claim1, claim2 = claims.verdict(a, ["pick"], ["ae", "savi", "state"]).split("\n\n")
-  # over train and L1, the levels the state cell has: state (1.0 + 0.9) / 2 = 0.95, SAVi (0.1 + 0.025) / 2
+  # over train and L1, the levels the state cell has: state (1.0 + 0.9) / 2 = 0.95, SAVi (0.1 + 0.025) / 2, and
+  # the paper's SAVi on pick (0.56 + 0.44) / 2
   assert ("The privileged state (the control that should succeed) succeeds 0.95 over the same levels on pick, "
-          "SAVi 0.06.") in " ".join(claim1.split())
+          "SAVi 0.06 (the paper's SAVi 0.50).") in " ".join(claim1.split())
+  # a level the paper has not (here "L9") leaves the paper's figure out rather than average other levels
+  odd = _loaded({("pick", "savi"): dict(train=0.1, L9=0.0), ("pick", "ae"): dict(train=0.0, L9=0.0),
+                 ("pick", "state"): dict(train=1.0, L9=1.0)})
+  flat = " ".join(claims.verdict(claims.answer(odd, ["pick"], ["ae", "savi", "state"], ["train", "L9"]), ["pick"],
+                                 ["ae", "savi", "state"]).split())
+  assert "over the same levels on pick, SAVi 0.05." in flat and "the paper's" not in flat
   assert "privileged state" not in claim2
   # without a state cell, no such sentence
   del loaded[("pick", "state")]

@@ -25,6 +25,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from roboshape.eval import paper
 from roboshape.eval import stats
 from roboshape.eval import tables
 
@@ -235,7 +236,8 @@ def _control(a: Answer, task: str) -> str:
   """Sentences on what the controls reach on `task` beside SAVi, "" without their cells: the ground-truth object
   tokens (the success an object-centric policy reaches from a perfect decomposition, against which SAVi's is read)
   and the privileged state (what the behaviour cloning and the closed loop reach at all, so that a difference
-  between encoders is read beside how far both fall short of it)."""
+  between encoders is read beside how far both fall short of it), with the paper's SAVi over the same levels where
+  the paper has them (a difference between failing policies reads otherwise than one between the paper's)."""
   text = []
   if (task, CONTROLS[0], LEVELS_MEAN) in a.pairs:
     text.append(f"On {task} the ground-truth object tokens (the control) succeed "
@@ -244,8 +246,11 @@ def _control(a: Answer, task: str) -> str:
   levels = [l for l in a.levels if (task, STATE, l) in a.success and (task, OBJECT_CENTRIC, l) in a.success]
   if levels:
     state, savi = (float(np.mean([a.success[(task, e, l)].value for l in levels])) for e in (STATE, OBJECT_CENTRIC))
+    published = paper.TABLES.get(task, {})
+    theirs = [published[(l, OBJECT_CENTRIC)][0] for l in levels if (l, OBJECT_CENTRIC) in published]
+    beside = f" (the paper's SAVi {np.mean(theirs):.2f})" if len(theirs) == len(levels) else ""
     text.append(f"The privileged state (the control that should succeed) succeeds {state:.2f} over the same "
-                f"levels on {task}, SAVi {savi:.2f}.")
+                f"levels on {task}, SAVi {savi:.2f}{beside}.")
   return " ".join(text)
 
 
