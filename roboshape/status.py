@@ -251,10 +251,11 @@ def _left(value) -> str:
   return "" if value is None else f"~{value:.1f}"
 
 
-def render(rows: List[Dict]) -> str:
+def render(rows: List[Dict], lanes: int = 1) -> str:
   """A markdown table: one line per run, its state, each stage's wall time (or state), the total wall time, the
   core-hours (rundir.read_stage_log: each attempt's wall time times the cores it held) and, with `left` in the
-  rows (`estimate_left`), the core-hours each has left and their sum."""
+  rows (`estimate_left`), the core-hours each has left and their sum; with `lanes` (a grid's runs at a time, one core
+  each) above one, also that sum over the lanes: the wall time left if they stay busy to the end."""
   stages = [s for s in rundir.STAGES if any(s in r["stages"] for r in rows)]
   estimated = any("left" in r for r in rows)
   extra = " left (est.) |" if estimated else ""
@@ -277,9 +278,12 @@ def render(rows: List[Dict]) -> str:
       lines.append("No estimate of the core-hours left yet: no stage of these runs' columns or encoders has finished "
                    "or saved work to take a rate from.")
     else:
-      lines.append(f"About {sum(r['left'] or 0.0 for r in rows):.1f} core-hours left, at the training stages' own "
+      left = sum(r['left'] or 0.0 for r in rows)
+      lines.append(f"About {left:.1f} core-hours left, at the training stages' own "
                    "pace and the rates of the finished stages (collections and caches not counted)"
-                   + (f"; no rate yet for {', '.join(unknown)}" if unknown else "") + ".")
+                   + (f"; no rate yet for {', '.join(unknown)}" if unknown else "")
+                   + (f"; at least {left / lanes:.1f} hours of wall time on the grid's {lanes} lanes (grid.lanes, "
+                      "one core each)" if lanes > 1 else "") + ".")
   return "\n".join(lines)
 
 
@@ -288,7 +292,8 @@ def main(argv) -> int:
     print("usage: python -m roboshape.status WORKDIR", file=sys.stderr)
     return 2
   try:
-    print(render(workdir_status(argv[1])))
+    config = rundir.load_config(argv[1])
+    print(render(workdir_status(argv[1]), lanes=int(config.grid.get("lanes", 1)) if "grid" in config else 1))
   except UserError as e:
     print(f"roboshape: error: {e}", file=sys.stderr)
     return 2

@@ -176,6 +176,10 @@ def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_c
   assert text.endswith(f"About {3.0 + 3.0 + rows[('pick', 'state')]['left']:.1f} core-hours left, at the "
                        "training stages' own pace and the rates of the finished stages (collections and caches not "
                        "counted); no rate yet for push x objects, pick x objects.")
+  # on two lanes, the same core-hours are half as many hours of wall time
+  assert status.render(list(rows.values()), lanes=2).endswith(
+      f"no rate yet for push x objects, pick x objects; at least {(6.0 + rows[('pick', 'state')]['left']) / 2:.1f} "
+      "hours of wall time on the grid's 2 lanes (grid.lanes, one core each).")
 
 
 def test_a_running_training_stage_is_estimated_at_its_own_pace_between_checkpoints_of_this_attempt(tmp_path):
