@@ -238,3 +238,17 @@ def test_the_figures_bars_are_the_tasks_cells_side_by_side_each_encoder_in_one_c
   assert [w for _, _, w, _ in push] == pytest.approx([0.8 / 3] * 3)
   assert plots.bar_layout(values, "pick", encoders, ["train", "L1"]) == [("savi", 0.0, 0.8, 4)]
   assert plots.bar_layout(values, "place", encoders, ["train", "L1"]) == []
+
+
+def test_the_figure_marks_a_measured_zero_with_a_dot_and_a_missing_cell_with_nothing(tmp_path, monkeypatch):
+  figures = []
+  monkeypatch.setattr(plots.fileio, "save_figure", lambda fig, path, **kw: figures.append(fig) or path)
+  values = {("place", "ae", "train"): (0.0, 0.0, 0.0), ("place", "ae", "L1"): (0.25, 0.1, 0.4),
+            ("place", "savi", "L1"): (0.0, 0.0, 0.05)}                 # place x SAVi has no train-level cell
+  plots.levels_with_intervals(values, ["place"], ["ae", "savi"], ["train", "L1"], str(tmp_path / "f.png"))
+  (ax,) = figures[0].axes
+  dots = {line.get_color(): list(zip(line.get_xdata(), line.get_ydata())) for line in ax.get_lines()
+          if line.get_marker() == "o"}
+  # bars of width 0.4 at -0.2 (AE, colour C0: its index among the encoders given) and +0.2 (SAVi, C1) of each
+  # level's tick: AE's 0 at train, SAVi's at L1; none for AE's 0.25 nor for SAVi's missing train cell
+  assert dots == {"C0": [(pytest.approx(-0.2), plots.ZERO_DOT)], "C1": [(pytest.approx(1.2), plots.ZERO_DOT)]}

@@ -67,6 +67,9 @@ def overall_bar_chart(summary: Sequence[Dict], path: str, levels: Sequence[str] 
   return fileio.save_figure(fig, path)
 
 
+ZERO_DOT = 0.012   # the height of the dot that marks a measured success of 0 (levels_with_intervals)
+
+
 def bar_layout(values: Dict[Tuple[str, str, str], Tuple], task: str, encoders: Sequence[str],
                levels: Sequence[str]) -> List[Tuple[str, float, float, int]]:
   """(encoder, offset from the level's tick, bar width, colour index) of each bar of `task`'s panel: the encoders
@@ -80,8 +83,9 @@ def bar_layout(values: Dict[Tuple[str, str, str], Tuple], task: str, encoders: S
 def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float, float]], tasks: Sequence[str],
                           encoders: Sequence[str], levels: Sequence[str], path: str) -> str:
   """Writes the per-task figure to `path`: one panel per task, x the levels, one bar per encoder at its success
-  with an error bar over its interval. values: {(task, encoder, level): (value, low, high)}, NaN bounds drawing no
-  error bar; a missing key draws no bar. Returns `path`."""
+  with an error bar over its interval, and a dot of the bar's colour just above the axis where the success is 0, so
+  a measured 0 is told from a cell that is not there. values: {(task, encoder, level): (value, low, high)}, NaN
+  bounds drawing no error bar; a missing key draws no bar and no dot. Returns `path`."""
   import matplotlib  # pylint: disable=import-outside-toplevel
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt  # pylint: disable=import-outside-toplevel
@@ -97,6 +101,9 @@ def levels_with_intervals(values: Dict[Tuple[str, str, str], Tuple[float, float,
       errors = np.nan_to_num(np.stack([value - low, high - value]))
       ax.bar(x + offset, np.nan_to_num(value), width, yerr=errors, capsize=2, error_kw=dict(elinewidth=0.8),
              label=tables.encoder_name(encoder), color=f"C{colour}")
+      zero = np.flatnonzero(value == 0)        # a measured 0 has no height to see: a dot of its colour on the axis
+      ax.plot(x[zero] + offset, np.full(len(zero), ZERO_DOT), marker="o", markersize=2.5, linestyle="none",
+              color=f"C{colour}")
     ax.set_xticks(x, [tables.level_name(l) for l in levels])
     ax.set_ylim(0, 1.05)
     ax.set_title(task, fontsize=9)

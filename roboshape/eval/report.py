@@ -220,7 +220,8 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
         {k: (e.value, e.low, e.high) for k, e in answer.success.items()}, [t for t in tasks if any(
             k[0] == t for k in answer.success)], encoders, answer.levels, os.path.join(out_dir, "success_by_level.png"))
     md += ["## Success per level", "", "![success per level with 95% intervals](success_by_level.png)", "",
-           f"Error bars: the 95% intervals of the tables above ({claims.ONE_SEED_MARK} there: one training seed).", ""]
+           f"Error bars: the 95% intervals of the tables above ({claims.ONE_SEED_MARK} there: one training seed); a "
+           "dot on the axis: a success of 0 (no bar and no dot: no cell).", ""]
   if summary:
     paths["overall.png"] = plots.overall_bar_chart(summary, os.path.join(out_dir, "overall.png"), levels=levels)
     md += ["## Overall", "", "![overall success rate](overall.png)", ""]
