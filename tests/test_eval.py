@@ -782,4 +782,10 @@ def test_the_published_report_refuses_cells_of_one_task_trained_on_different_dat
   # one dataset per task (a cell without a record is not compared): the report is built
   shutil.move(os.path.join(root, "push_state"), str(tmp_path / "push_state"))
   assert report.main(["report", root]) == 0
-  assert os.path.isfile(os.path.join(root, "report", "report.md"))
+  md = open(os.path.join(root, "report", "report.md")).read()
+  push, pick = md.split("## push\n")[1].split("## pick\n")
+  # each task's section names its one dataset and how many of its published cells record it
+  assert "- dataset: `aaaa` (its identity, a hash over the shards' checksums), recorded by 2 of the 2 published " \
+      "cell(s) in their dataset.json" in push
+  assert "- dataset: `cccc` (its identity, a hash over the shards' checksums), recorded by 1 of the 2 published " \
+      "cell(s) in their dataset.json" in pick and pick.count("- dataset:") == 1

@@ -3,6 +3,7 @@
   publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<column>/
   check_datasets({(task, column): folder})   # UserError when cells of one task name different datasets
                                              # (publish refuses a cell that would make its row such a mix)
+  datasets({(task, column): folder})         # {task: {identity: [folders]}}, what the report lists per task
   record_grid(dest_root, tasks, columns); record_skip(dest_root, task, column, reason); grid_record(dest_root)
 
 The folder is named after the run's column (roboshape/encoders/columns.py): its encoder, with its options
@@ -164,18 +165,22 @@ def _check_joins_its_row(task: str, column: str, identity, dest_root: str) -> No
                     "in once all its cells are done, or move the old cells out first.")
 
 
+def datasets(cells: Mapping[Tuple[str, str], str]) -> Dict[str, Dict[str, List[str]]]:
+  """{task: {dataset identity: [cell folders]}} of published cells ({(task, column): folder}), from their
+  dataset.json; a cell without one (published before runs recorded one) is left out."""
+  by_task: Dict[str, Dict[str, List[str]]] = {}
+  for (task, _), folder in sorted(cells.items()):
+    path = os.path.join(folder, DATASET)
+    if os.path.isfile(path):
+      by_task.setdefault(task, {}).setdefault(_identity(path), []).append(os.path.normpath(folder))
+  return by_task
+
+
 def check_datasets(cells: Mapping[Tuple[str, str], str]) -> None:
   """Raises UserError, one line naming the cells, when published cells of one task ({(task, column): folder})
   record different datasets (their dataset.json identities): such cells were trained on other demos and do not
   belong in one table. A cell without a dataset.json (published before runs recorded one) is not compared."""
-  by_task: Dict[str, Dict[str, List[str]]] = {}
-  for (task, _), folder in sorted(cells.items()):
-    path = os.path.join(folder, DATASET)
-    if not os.path.isfile(path):
-      continue
-    identity = _identity(path)
-    by_task.setdefault(task, {}).setdefault(identity, []).append(os.path.normpath(folder))
-  for task, found in by_task.items():
+  for task, found in datasets(cells).items():
     if len(found) > 1:
       groups = "; ".join(f"{', '.join(os.path.basename(f) for f in folders)} on dataset {identity}"
                          for identity, folders in sorted(found.items(), key=lambda kv: (-len(kv[1]), kv[0])))
