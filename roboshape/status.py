@@ -226,10 +226,10 @@ def estimate_left(rows: List[Dict]) -> None:
     r["left"] = left
 
 
-def workdir_status(workdir: str) -> List[Dict]:
+def workdir_status(workdir: str, config=None) -> List[Dict]:
   """One row per run of the workdir: task, encoder (its column: roboshape/encoders/columns.py), run_dir and
-  `run_status`'s fields."""
-  config = rundir.load_config(workdir)
+  `run_status`'s fields. `config`: the workdir's config.json when the caller has read it already."""
+  config = config if config is not None else rundir.load_config(workdir)
   if "grid" in config:
     runs = list(grid.grid_configs(config, workdir))
   else:
@@ -293,7 +293,8 @@ def main(argv) -> int:
     return 2
   try:
     config = rundir.load_config(argv[1])
-    print(render(workdir_status(argv[1]), lanes=int(config.grid.get("lanes", 1)) if "grid" in config else 1))
+    print(render(workdir_status(argv[1], config),
+                 lanes=int(config.grid.get("lanes", 1)) if "grid" in config else 1))
   except UserError as e:
     print(f"roboshape: error: {e}", file=sys.stderr)
     return 2
