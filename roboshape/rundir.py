@@ -14,8 +14,10 @@
 
 A grid config (configs/reproduce.py) runs each (task, column) in <workdir>/<task>_<column>/ (`grid_run_dir`; a
 column is an encoder, alone or with options: roboshape/encoders/columns.py), reading the task's dataset from
-<data_root>/<task>; a grid run skipped for bad input leaves SKIPPED.json there. A run with pretrain.from_workdir set
-serves the encoder another run's pretrain stage trained, from that run's folders (`pretrained_workdir`).
+<data_root>/<task>; a grid run skipped for bad input leaves SKIPPED.json there. The grid's own stage log
+(<workdir>/stages.json) holds one entry, GRID_CLOCK: the wall time the grid process ran, over its restarts. A run
+with pretrain.from_workdir set serves the encoder another run's pretrain stage trained, from that run's folders
+(`pretrained_workdir`).
 `STAGES` names the stages, in the order a config runs them.
 
 Training seeds, one name for every training stage (`train_seeds`): with pretrain.train_seeds = (s1, s2, ...)
@@ -41,6 +43,7 @@ from roboshape import fileio
 from roboshape.errors import UserError
 
 STAGES = ("collect", "pretrain", "cache", "train_policy", "evaluate", "report")
+GRID_CLOCK = "grid"                # the grid workdir's stage log entry: the grid's attempts (roboshape/stages.py)
 CONFIG_FILE = "config.json"
 SKIPPED_FILE = "SKIPPED.json"      # a grid run skipped for bad input: {"reason": the one-line message}
 CHECKPOINTS = "checkpoints"

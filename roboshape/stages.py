@@ -117,7 +117,9 @@ def run_grid(config, workdir: str) -> None:
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
   go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt).
-  The grid holds its workdir for the whole grid, and each run its own (rundir.hold_workdir).
+  The grid holds its workdir for the whole grid, and each run its own (rundir.hold_workdir). The grid's stage log
+  (<workdir>/stages.json, entry rundir.GRID_CLOCK) adds up the wall time of its attempts: how long the whole grid
+  took, across restarts, which no run's own log can tell (`roboshape.status` prints it).
   """
   config_check.check(config)
   runs = list(grid_configs(config, workdir))
@@ -132,23 +134,29 @@ def run_grid(config, workdir: str) -> None:
         publish.record_grid(config.grid.publish, dict.fromkeys(t for t, _, _, _ in runs),
                             dict.fromkeys(c for _, c, _, _ in runs))
       runs = _skip_unavailable(config, runs)
-    lanes = int(config.grid.get("lanes", 1))
-    if lanes > 1:
-      _run_lanes(config, runs, lanes)
-    else:
-      for task, column, sub, sub_dir in runs:
-        print(f"[roboshape] grid run {task} x {column} -> {sub_dir}", flush=True)
-        try:
-          run(sub, sub_dir)
-        except DiskFull:
-          raise
-        except UserError as e:
-          _finish_run(config, task, column, sub, sub_dir, str(e))
-          continue
-        _finish_run(config, task, column, sub, sub_dir, None)
-    if "report" in config.stages:
-      with disk_full_is_one_line("the report stage", workdir):
-        importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+    with rundir.stage_clock(workdir, rundir.GRID_CLOCK):
+      _run_grid_runs(config, runs)
+      if "report" in config.stages:
+        with disk_full_is_one_line("the report stage", workdir):
+          importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+
+
+def _run_grid_runs(config, runs) -> None:
+  """The grid's runs, in `grid.lanes` parallel lanes or one after another here."""
+  lanes = int(config.grid.get("lanes", 1))
+  if lanes > 1:
+    _run_lanes(config, runs, lanes)
+    return
+  for task, column, sub, sub_dir in runs:
+    print(f"[roboshape] grid run {task} x {column} -> {sub_dir}", flush=True)
+    try:
+      run(sub, sub_dir)
+    except DiskFull:
+      raise
+    except UserError as e:
+      _finish_run(config, task, column, sub, sub_dir, str(e))
+      continue
+    _finish_run(config, task, column, sub, sub_dir, None)
 
 
 def _skip_unavailable(config, runs):

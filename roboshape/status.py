@@ -5,12 +5,15 @@ took.
 
 Reads the workdir's config.json and each run's stage log (<run>/stages.json, written by roboshape/stages.py). A run
 is "done" when every stage it runs is done, "running" while a live process runs one of its stages, "stopped" when
-the process that ran a stage is gone before it finished (run the same command to resume), "skipped" when the grid
-skipped it (SKIPPED.json: a baseline without weights), and "pending" before any stage started. A running or stopped
+the process that ran a stage is gone before it finished, or the run ended between two stages (run the same command
+to resume), "skipped" when the grid skipped it (SKIPPED.json: a baseline without weights), and "pending" before any
+stage but the collection started (a grid collects each task's dataset itself, in the stage log of the task's first
+run, before any lane starts: that run waits for a lane like the others). A running or stopped
 training stage says which seed it is at and that seed's newest saved step ("running (seed 2/3 at 1500/5000)"), an
 evaluation how many rollouts its logs hold.
 
-A grid's table ends with a rough estimate of the core-hours its unfinished runs have left (`estimate_left`): each
+A grid's table ends with the wall time the grid itself has run so far (`grid_time`: its stage log's one entry,
+summed over its restarts) and a rough estimate of the core-hours its unfinished runs have left (`estimate_left`): each
 unfinished training or evaluation stage's remaining work (training steps over its seeds, rollouts) at a rate in
 core-seconds per unit: a training stage's own pace between its two newest checkpoints of this attempt (`pace`), else
 what the finished stages of its column (else of its encoder, for a column with options) took, else the unfinished
@@ -157,7 +160,7 @@ def run_status(stages, run_dir: str, config=None) -> Dict:
     state = "done"
   elif "running" in states:
     state = "running"
-  elif "stopped" in states or "done" in states:
+  elif "stopped" in states or any(s == "done" and stage != "collect" for stage, s in zip(stages, states)):
     state = "stopped"
   else:
     state = "pending"
@@ -240,6 +243,21 @@ def workdir_status(workdir: str, config=None) -> List[Dict]:
   return rows
 
 
+def grid_time(workdir: str) -> Optional[str]:
+  """A line on the wall time a grid's process has run (rundir.GRID_CLOCK in the grid workdir's stage log, summed
+  over its attempts, an unfinished one up to its last beat): None before a grid that logs it first ran."""
+  entry = rundir.read_stage_log(workdir, strict=True).get(rundir.GRID_CLOCK)
+  if not isinstance(entry, dict):
+    return None
+  seconds = rundir.logged_time(entry)[0]
+  if entry.get("state") == "done":
+    now = f"finished {entry.get('finished', '?')}"
+  else:
+    now = "running now" if _alive(entry.get("pid")) else "stopped"
+  return (f"The grid has run {_duration(seconds)} of wall time since {entry.get('started', '?')}, over its "
+          f"restarts ({now}).")
+
+
 def _duration(seconds) -> str:
   if not isinstance(seconds, (int, float)):
     return str(seconds)
@@ -295,6 +313,9 @@ def main(argv) -> int:
     config = rundir.load_config(argv[1])
     print(render(workdir_status(argv[1], config),
                  lanes=int(config.grid.get("lanes", 1)) if "grid" in config else 1))
+    clock = grid_time(argv[1]) if "grid" in config else None
+    if clock:
+      print(clock)
   except UserError as e:
     print(f"roboshape: error: {e}", file=sys.stderr)
     return 2

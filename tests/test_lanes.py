@@ -8,6 +8,7 @@ import pytest
 from configs import common
 from configs import reproduce
 from roboshape import lanes
+from roboshape import rundir
 from roboshape import stages
 from roboshape.eval import publish
 from roboshape.errors import UserError
@@ -70,6 +71,8 @@ def test_a_grid_in_lanes_skips_a_failed_baseline_and_stops_for_savi(tmp_path):
   assert not (tmp_path / "grid" / "push_savi" / "SKIPPED.json").exists()
   assert publish.grid_record(config.grid.publish) == dict(tasks=["push"], columns=["savi", "r3m"],
                                                           skipped={"push_r3m": reason})
+  clock = rundir.read_stage_log(str(tmp_path / "grid"))[rundir.GRID_CLOCK]    # the grid's own attempt, logged
+  assert clock["state"] == "running" and clock["pid"] == os.getpid() and clock["beat"] > clock["attempt"]
 
 
 def _wait_for(predicate, seconds: float = 20.0) -> bool:

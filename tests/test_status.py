@@ -136,9 +136,36 @@ def test_status_of_a_grid_says_done_running_stopped_skipped_and_pending(tmp_path
   assert rows[("push", "state")]["core_hours"] == pytest.approx(
       60.0 * sum(range(1, len(stages) + 1)) * len(os.sched_getaffinity(0)) / 3600)
   assert "1 done, 1 running, 1 skipped, 1 stopped of 4 run(s)" in text
-  # A run none of whose stages started is pending.
+  # A run none of whose stages started is pending; so is one whose dataset alone the grid collected for it (the
+  # grid's own collection, before its lanes start), while one that ended between two later stages has stopped.
   os.remove(rundir.stage_log_path(stopped))
   assert {r["state"] for r in status.workdir_status(workdir) if r["task"] == "pick"} == {"pending", "skipped"}
+  rundir.record_stage(stopped, "collect", "running")
+  rundir.record_stage(stopped, "collect", "done", 5.0)
+  assert {r["state"] for r in status.workdir_status(workdir) if r["task"] == "pick"} == {"pending", "skipped"}
+  rundir.record_stage(stopped, stages[1], "running")
+  rundir.record_stage(stopped, stages[1], "done", 5.0)
+  assert {r["state"] for r in status.workdir_status(workdir) if r["task"] == "pick"} == {"stopped", "skipped"}
+
+
+def test_status_says_how_long_the_grid_itself_has_run_over_its_restarts(tmp_path, capsys):
+  _, workdir = _grid_workdir(tmp_path)
+  assert status.grid_time(workdir) is None                             # a grid that never ran
+  rundir.record_stage(workdir, rundir.GRID_CLOCK, "running")
+  log = rundir.read_stage_log(workdir)
+  log[rundir.GRID_CLOCK].update(pid=_dead_pid(), beat=log[rundir.GRID_CLOCK]["attempt"] + 3600.0)
+  with open(rundir.stage_log_path(workdir), "w") as f:                 # killed after an hour
+    json.dump(log, f)
+  started = log[rundir.GRID_CLOCK]["started"]
+  assert status.grid_time(workdir) == (
+      f"The grid has run 1h00m of wall time since {started}, over its restarts (stopped).")
+  rundir.record_stage(workdir, rundir.GRID_CLOCK, "running")           # restarted: the hour is kept
+  assert status.grid_time(workdir).startswith("The grid has run 1h00m of wall time") and "(running now)" in (
+      status.grid_time(workdir))
+  rundir.record_stage(workdir, rundir.GRID_CLOCK, "done", 1800.0)
+  line = status.grid_time(workdir)
+  assert line.startswith(f"The grid has run 1h30m of wall time since {started}, over its restarts (finished 20")
+  assert status.main(["status", workdir]) == 0 and capsys.readouterr().out.rstrip().endswith(line)
 
 
 def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_column_or_encoder(tmp_path):
@@ -164,6 +191,7 @@ def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_c
   half = rundir.grid_run_dir(workdir, "pick", "state")
   os.makedirs(os.path.join(rundir.checkpoints(rundir.policy_dir(half)), str(steps // 2)))
   rundir.record_stage(half, "collect", "done", 1.0)
+  rundir.record_stage(half, "cache", "done", 1.0)                      # it ended between two stages: stopped
   rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
   assert rows[("pick", "state")]["left"] == pytest.approx((steps - steps // 2) / steps * 2.0 + 1.0)
   # a column with options takes its encoder's rate (push and pick x state+proprio: 3 each); a column nothing
