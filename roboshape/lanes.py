@@ -13,9 +13,9 @@ Each job is a child `python -m roboshape.lanes RUN_DIR CORES PARENT_PID`, which 
 module-level function, pickled by name: the child imports its module when it unpickles it, so this module imports
 none of its callers. A grid passes `roboshape.stages.run`, so each run resumes and fails exactly as `launch.py`
 would; everything it prints goes to RUN_DIR/log.txt (appended across resumes). Lane i owns the cores cores[i::lanes]
-of this process's affinity, and a job's simulator workers inherit them. Ctrl-C or SIGTERM interrupts every child
-(each stops the way an interrupted run stops and resumes the same way) and re-raises here; a parent that dies any
-other way (SIGKILL) takes its children with it (`child_setup`). Each child holds its run's workdir
+of this process's affinity, and a job's simulator workers inherit them. Ctrl-C or SIGTERM here sends SIGTERM to
+every child (each stops the way an interrupted run stops and resumes the same way) and re-raises here; a parent
+that dies any other way (SIGKILL) takes its children with it (`child_setup`). Each child holds its run's workdir
 (rundir.hold_workdir), so a second grid on the same runs stops in one line instead of running them twice.
 """
 import ctypes
@@ -81,10 +81,12 @@ def _start(run: Run, job: Job, cores: Set[int]) -> subprocess.Popen:
 
 
 def _interrupt(children) -> None:
-  """SIGINT to every child (each stops as an interrupted run does), then a kill for any still alive after 60 s."""
+  """SIGTERM to every child (each stops as an interrupted run does, cli.Terminated), then a kill for any still alive
+  after 60 s. SIGTERM, not SIGINT: a grid started as a background job (`nohup ... &`) ignores SIGINT, and so do the
+  children it starts; a child deaf to the signal would be killed without saving the steps it trained."""
   for child in children:
     if child.poll() is None:
-      child.send_signal(signal.SIGINT)
+      child.send_signal(signal.SIGTERM)
   deadline = time.time() + 60
   for child in children:
     try:

@@ -141,3 +141,43 @@ def test_a_lane_child_dies_with_its_parent_even_when_the_parent_is_killed(tmp_pa
   parent.send_signal(signal.SIGKILL)
   parent.wait()
   assert _wait_for(lambda: _gone(child)), f"lane child {child} outlived its killed parent"
+
+
+def wait_to_be_interrupted(config, run_dir: str) -> None:
+  """A lane's run (module-level: a child unpickles it by name) that says it started, then waits until an interrupt
+  reaches it, and notes that it did, as a training stage saves its steps when interrupted."""
+  import time  # pylint: disable=import-outside-toplevel
+  del config
+  open(os.path.join(run_dir, "started"), "w").close()
+  try:
+    time.sleep(120)
+  except KeyboardInterrupt:
+    open(os.path.join(run_dir, "interrupted"), "w").close()
+    raise
+
+
+def test_a_grid_in_the_background_stops_its_lanes_as_interrupted_runs(tmp_path):
+  """A grid started as a background job (`nohup ... &`: SIGINT ignored, inherited by its lanes) and stopped with
+  SIGTERM stops each lane the way an interrupted run stops (a training stage saves its steps), not by a kill."""
+  import signal  # pylint: disable=import-outside-toplevel
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import sys  # pylint: disable=import-outside-toplevel
+  here = os.path.dirname(os.path.abspath(__file__))
+  run_dir = str(tmp_path / "a")
+  script = ("import sys\nimport ml_collections\nfrom roboshape import cli, lanes\nimport test_lanes\n"
+            "cli.install_signal_handlers()\ntry:\n"
+            "  lanes.run_parallel(test_lanes.wait_to_be_interrupted, [('a', ml_collections.ConfigDict({'name': 'a'}), "
+            "sys.argv[1])], 1, lambda *a: None, poll_seconds=0.2)\n"
+            "except KeyboardInterrupt as e:\n  sys.exit(cli.interrupt_code(e))\n")
+  env = dict(os.environ, PYTHONPATH=here + os.pathsep + os.environ.get("PYTHONPATH", ""))
+  grid = subprocess.Popen([sys.executable, "-c", script, run_dir], cwd=os.path.dirname(here), env=env,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+  try:
+    assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "started")), 60.0), "the lane never started"
+    grid.send_signal(signal.SIGTERM)
+    assert grid.wait(timeout=90) == 128 + signal.SIGTERM
+  finally:
+    grid.kill()
+  log = open(os.path.join(run_dir, lanes.LOG_FILE)).read()
+  assert os.path.exists(os.path.join(run_dir, "interrupted")), log           # the interrupt reached the run
+  assert log.rstrip().endswith("roboshape: interrupted; run the same command to resume")
