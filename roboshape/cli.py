@@ -6,7 +6,9 @@ to do; the command prints it as one line and exits with status 2, no traceback.
 Ctrl-C (SIGINT) and SIGTERM end a run with one line, `roboshape: interrupted; run the same command to resume`, and
 exit status 130 / 143 (`run_app`, then `exit_process`): the signal raises in the main thread, so each stage's
 `with` blocks close what they hold (the checkpoint writer finishes the checkpoint in flight, simulator workers are
-shut down); a second signal while that happens exits at once (every stage resumes after a kill as well).
+shut down); a second signal while that happens exits at once (every stage resumes after a kill as well), except a
+second SIGTERM in a grid's lane (roboshape/lanes.py: its grid sends it one when stopped, which a kill of the whole
+process group doubles; the grid kills a lane still alive 60 s later).
 """
 import difflib
 import logging
@@ -38,9 +40,12 @@ def interrupt_code(e: KeyboardInterrupt) -> int:
 
 
 def _on_signal(signum, frame) -> None:
-  """The first SIGINT/SIGTERM raises in the main thread; a second one, while the first is cleaned up, exits now."""
+  """The first SIGINT/SIGTERM raises in the main thread; a second one of `install_signal_handlers`' `hurry`, while
+  the first is cleaned up, exits now (another second one is let be)."""
   del frame
   if getattr(_on_signal, "seen", False):
+    if signum not in getattr(_on_signal, "hurry", ()):
+      return
     print(f"roboshape: {INTERRUPTED}", file=sys.stderr, flush=True)
     os._exit(128 + signum)  # pylint: disable=protected-access
   _on_signal.seen = True
@@ -48,11 +53,13 @@ def _on_signal(signum, frame) -> None:
   raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
-def install_signal_handlers():
-  """Routes SIGINT and SIGTERM to `_on_signal` (main thread only); returns the previous handlers."""
+def install_signal_handlers(hurry=(signal.SIGINT, signal.SIGTERM)):
+  """Routes SIGINT and SIGTERM to `_on_signal` (main thread only); returns the previous handlers. A second signal
+  of `hurry` exits at once (a person pressing Ctrl-C again); a grid's lane passes SIGINT alone, since the one stop
+  of a grid can reach it twice as SIGTERM (the grid's own, and a kill of the whole process group or session)."""
   if threading.current_thread() is not threading.main_thread():
     return {}
-  _on_signal.seen = False
+  _on_signal.seen, _on_signal.hurry = False, tuple(hurry)
   previous = {}
   for signum in (signal.SIGINT, signal.SIGTERM):
     if signal.getsignal(signum) is not signal.SIG_IGN:   # a background job keeps ignoring Ctrl-C

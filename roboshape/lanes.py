@@ -166,5 +166,7 @@ def main(argv) -> int:
 
 if __name__ == "__main__":
   from roboshape import cli  # pylint: disable=ungrouped-imports
-  cli.install_signal_handlers()             # SIGTERM (its parent's death, or a kill) stops it as Ctrl-C would
+  # SIGTERM (from its grid, its parent's death, or a kill) stops it as Ctrl-C would, and a second one while it saves
+  # its steps does not break that off (`_interrupt` kills it 60 s on)
+  cli.install_signal_handlers(hurry=(signal.SIGINT,))
   cli.exit_process(main(sys.argv))

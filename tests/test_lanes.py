@@ -152,13 +152,16 @@ def wait_to_be_interrupted(config, run_dir: str) -> None:
   try:
     time.sleep(120)
   except KeyboardInterrupt:
+    time.sleep(1.0)                    # saving: a second signal now must not break it off
     open(os.path.join(run_dir, "interrupted"), "w").close()
     raise
 
 
-def test_a_grid_in_the_background_stops_its_lanes_as_interrupted_runs(tmp_path):
+@pytest.mark.parametrize("whole_group", [False, True])
+def test_a_grid_in_the_background_stops_its_lanes_as_interrupted_runs(tmp_path, whole_group):
   """A grid started as a background job (`nohup ... &`: SIGINT ignored, inherited by its lanes) and stopped with
-  SIGTERM stops each lane the way an interrupted run stops (a training stage saves its steps), not by a kill."""
+  SIGTERM stops each lane the way an interrupted run stops (a training stage saves its steps), not by a kill; also
+  when the SIGTERM goes to the whole process group, so that each lane gets it twice (from the kill and its grid)."""
   import signal  # pylint: disable=import-outside-toplevel
   import subprocess  # pylint: disable=import-outside-toplevel
   import sys  # pylint: disable=import-outside-toplevel
@@ -171,10 +174,13 @@ def test_a_grid_in_the_background_stops_its_lanes_as_interrupted_runs(tmp_path):
             "except KeyboardInterrupt as e:\n  sys.exit(cli.interrupt_code(e))\n")
   env = dict(os.environ, PYTHONPATH=here + os.pathsep + os.environ.get("PYTHONPATH", ""))
   grid = subprocess.Popen([sys.executable, "-c", script, run_dir], cwd=os.path.dirname(here), env=env,
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+                          start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
   try:
     assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "started")), 60.0), "the lane never started"
-    grid.send_signal(signal.SIGTERM)
+    if whole_group:
+      os.killpg(grid.pid, signal.SIGTERM)
+    else:
+      grid.send_signal(signal.SIGTERM)
     assert grid.wait(timeout=90) == 128 + signal.SIGTERM
   finally:
     grid.kill()
