@@ -167,14 +167,15 @@ def test_a_grid_in_the_background_stops_its_lanes_as_interrupted_runs(tmp_path, 
   import sys  # pylint: disable=import-outside-toplevel
   here = os.path.dirname(os.path.abspath(__file__))
   run_dir = str(tmp_path / "a")
-  script = ("import sys\nimport ml_collections\nfrom roboshape import cli, lanes\nimport test_lanes\n"
+  script = ("import signal, sys\nimport ml_collections\nfrom roboshape import cli, lanes\nimport test_lanes\n"
+            "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"          # as a background job: its lanes inherit it
             "cli.install_signal_handlers()\ntry:\n"
             "  lanes.run_parallel(test_lanes.wait_to_be_interrupted, [('a', ml_collections.ConfigDict({'name': 'a'}), "
             "sys.argv[1])], 1, lambda *a: None, poll_seconds=0.2)\n"
             "except KeyboardInterrupt as e:\n  sys.exit(cli.interrupt_code(e))\n")
   env = dict(os.environ, PYTHONPATH=here + os.pathsep + os.environ.get("PYTHONPATH", ""))
   grid = subprocess.Popen([sys.executable, "-c", script, run_dir], cwd=os.path.dirname(here), env=env,
-                          start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+                          start_new_session=True)
   try:
     assert _wait_for(lambda: os.path.exists(os.path.join(run_dir, "started")), 60.0), "the lane never started"
     if whole_group:
