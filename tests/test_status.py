@@ -340,6 +340,28 @@ def test_publish_copies_the_results_under_fixed_names_and_keeps_one_run(tmp_path
   assert not os.path.exists(os.path.join(dest, "README.md"))
 
 
+def test_publish_from_the_command_line_and_its_one_line_refusals(tmp_path, capsys):
+  config, workdir = _finished_run(tmp_path)
+  dest_root = str(tmp_path / "results")
+  assert publish.main(["publish", workdir, dest_root]) == 0
+  dest = os.path.join(dest_root, "push_savi")
+  assert capsys.readouterr().out.strip() == f"[roboshape] published {workdir} to {dest}"
+  with open(os.path.join(dest, "config.json")) as f:
+    assert json.load(f) == json.load(open(rundir.config_path(workdir)))
+  grid = str(tmp_path / "grid")                          # a grid's workdir, a run not evaluated, bad usage
+  grid_config = common.get_config("push", "state", "tiny")
+  grid_config.grid = dict(tasks=("push",), encoders=("state",), publish="")
+  rundir.save_config(grid_config, grid)
+  os.remove(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE))
+  for argv, message in (([grid, dest_root], "is a grid's workdir: publish each of its runs"),
+                        ([workdir, dest_root], "has no evaluation results (results.json) to publish"),
+                        ([workdir], "usage: python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT")):
+    assert publish.main(["publish"] + argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+  assert sorted(os.listdir(dest_root)) == ["push_savi"] and not os.path.exists(os.path.join(grid, "push_state"))
+
+
 def test_publish_copies_every_training_seeds_validation_curve(tmp_path):
   config, workdir = _finished_run(tmp_path, "state")
   config.policy.train_seeds = (0, 3)

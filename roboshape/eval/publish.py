@@ -1,5 +1,6 @@
 """Copies a finished run's results out of its workdir, so they survive the machine (e.g. into results/small/).
 
+  python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT    # one evaluated run, e.g. into results/small
   publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<column>/
   check_datasets({(task, column): folder})   # UserError when cells of one task name different datasets
                                              # (publish refuses a cell that would make its row such a mix)
@@ -41,6 +42,7 @@ import glob
 import json
 import os
 import shutil
+import sys
 from typing import Dict, List, Mapping, Tuple
 
 from roboshape import data as data_lib
@@ -230,3 +232,25 @@ def record_skip(dest_root: str, task: str, column: str, reason) -> None:
 def _write_grid(dest_root: str, record: Dict) -> None:
   os.makedirs(dest_root, exist_ok=True)
   fileio.atomic_write_json(os.path.join(dest_root, GRID_FILE), record)
+
+
+def main(argv) -> int:
+  """python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT: `publish` of the run in RUN_WORKDIR (its config.json)."""
+  if len(argv) != 3 or any(a.startswith("-") for a in argv[1:]):
+    print("usage: python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT   (e.g. results/small)", file=sys.stderr)
+    return 2
+  try:
+    config = rundir.load_config(argv[1])
+    if "grid" in config:
+      raise UserError(f"{argv[1]} is a grid's workdir: publish each of its runs (<workdir>/<task>_<column>), or "
+                      "let the grid publish them (--config.grid.publish).")
+    dest = publish(config, argv[1], argv[2])
+  except UserError as e:
+    print(f"roboshape: error: {e}", file=sys.stderr)
+    return 2
+  print(f"[roboshape] published {argv[1]} to {dest}", flush=True)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv))
