@@ -39,6 +39,7 @@ import logging
 import os
 import sys
 import time
+import warnings
 from typing import Any, Iterator, List, NamedTuple, Optional, Tuple
 
 import jax
@@ -287,11 +288,15 @@ def _settle(sink: io.StringIO, poll: float = 0.05, quiet_polls: int = 6, limit: 
 
   Orbax reads every array at once and gives up on the first that fails; the others end later, on other threads,
   each printing a traceback ("Event loop is closed", or "Exception ignored in <coroutine>" with a page of
-  TensorStore spec when collected). Inside `_quiet` they go to `sink`: this waits until nothing more comes.
+  TensorStore spec when collected). Inside `_quiet` they go to `sink`: this waits until nothing more comes. The
+  abandoned reads' coroutines that the collections here free also warn that they were never awaited (a
+  RuntimeWarning, which a test run records): that warning is ignored here.
   """
   deadline, calm, seen = time.monotonic() + limit, 0, -1
   while time.monotonic() < deadline and calm < quiet_polls:
-    gc.collect()
+    with warnings.catch_warnings():
+      warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
+      gc.collect()
     time.sleep(poll)
     size = sink.tell()
     calm, seen = (calm + 1, seen) if size == seen else (0, size)
