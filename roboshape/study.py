@@ -249,7 +249,7 @@ def main(argv) -> int:
     else:
       render(args.study)
   except UserError as e:
-    print(f"roboshape: {e}", file=sys.stderr)
+    print(f"roboshape: error: {e}", file=sys.stderr)
     return 2
   return 0
 

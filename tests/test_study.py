@@ -124,6 +124,16 @@ def test_a_readme_without_markers_and_an_unevaluated_run_are_one_line_errors(tmp
     study.probe_row(workdir, "x")
 
 
+def test_the_command_says_a_bad_input_in_one_line_as_every_tool_does(tmp_path, capsys):
+  (tmp_path / "README.md").write_text("no markers\n")
+  assert study.main([str(tmp_path), str(tmp_path / "run")]) == 2         # a probe without --name
+  assert capsys.readouterr().err == "roboshape: error: name the probe: --name NAME (its row in probes.csv).\n"
+  assert study.main([str(tmp_path)]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("roboshape: error: ") and "lacks the markers" in err and err.count("\n") == 1
+  assert (tmp_path / "README.md").read_text() == "no markers\n"
+
+
 def test_the_committed_recipe_study_readme_equals_its_csv_and_the_csv_its_probes_files():
   rows = study.read_rows(RECIPE)
   assert rows, "results/small/recipe/probes.csv holds no probe"
