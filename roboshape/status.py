@@ -136,6 +136,16 @@ def progress(config, run_dir: str, stage: str) -> str:
   return ""
 
 
+def _entry_state(entry: dict) -> str:
+  """"done", "running" (its process alive), "stopped" (its process gone before it finished) or "pending" (never
+  started) of one entry of a stage log."""
+  if entry.get("state") == "done":
+    return "done"
+  if entry.get("state") == "running":
+    return "running" if _alive(entry.get("pid")) else "stopped"
+  return "pending"
+
+
 def run_status(stages, run_dir: str, config=None) -> Dict:
   """{state, stages: {stage: seconds or state}, seconds, core_hours} of one run whose config runs `stages`; the
   totals count a stage still running (or killed) up to its last beat (rundir.logged_time). With the run's
@@ -146,12 +156,7 @@ def run_status(stages, run_dir: str, config=None) -> Dict:
   per_stage, states = {}, []
   for stage in stages:
     entry = log.get(stage, {})
-    if entry.get("state") == "done":
-      state = "done"
-    elif entry.get("state") == "running":
-      state = "running" if _alive(entry.get("pid")) else "stopped"
-    else:
-      state = "pending"
+    state = _entry_state(entry)
     states.append(state)
     done_so_far = progress(config, run_dir, stage) if config is not None and state != "pending" else ""
     per_stage[stage] = entry.get("seconds") if state == "done" else (
@@ -249,11 +254,8 @@ def grid_time(workdir: str) -> Optional[str]:
   entry = rundir.read_stage_log(workdir, strict=True).get(rundir.GRID_CLOCK)
   if not isinstance(entry, dict):
     return None
-  seconds = rundir.logged_time(entry)[0]
-  if entry.get("state") == "done":
-    now = f"finished {entry.get('finished', '?')}"
-  else:
-    now = "running now" if _alive(entry.get("pid")) else "stopped"
+  seconds, state = rundir.logged_time(entry)[0], _entry_state(entry)
+  now = {"done": f"finished {entry.get('finished', '?')}", "running": "running now"}.get(state, state)
   return (f"The grid has run {_duration(seconds)} of wall time since {entry.get('started', '?')}, over its "
           f"restarts ({now}).")
 
