@@ -186,7 +186,7 @@ def estimate_left(rows: List[Dict]) -> None:
     return tuple(dict.fromkeys(((column, stage), (columns.parse(column)[0], stage))
                                + ((("*", stage),) if stage == "evaluate" else ())))
 
-  def measured(r, stage):
+  def measured(i, r, stage):
     """(core-seconds, units, how) a stage of a row measured, or None: a finished stage's whole work ("finished"),
     else an unfinished one's `pace` ("pace"), else its logged time over the work it saved ("saved")."""
     state = r["stages"].get(stage, "pending")
@@ -198,10 +198,13 @@ def estimate_left(rows: List[Dict]) -> None:
     now = pace(r["config"], r["run_dir"], stage, *r["attempts"][stage]) if stage in r.get("attempts", {}) else None
     if now:
       return now + ("pace",)
-    done = (work(r["config"], r["run_dir"], stage) or (0, 0))[0]
+    done = (saved[i, stage] or (0, 0))[0]
     return (r["stage_core_seconds"].get(stage, 0.0), done, "saved") if done else None
 
-  found = {(i, stage): measured(r, stage) for i, r in enumerate(rows) for stage in ESTIMATED}
+  saved = {(i, stage): work(r["config"], r["run_dir"], stage)     # each unfinished stage's (done, in all), read once
+           for i, r in enumerate(rows) for stage in ESTIMATED
+           if stage in r["stages"] and not isinstance(r["stages"][stage], (int, float))}
+  found = {(i, stage): measured(i, r, stage) for i, r in enumerate(rows) for stage in ESTIMATED}
   spent, units = {}, {}                 # per (key, unfinished): the finished stages' rates, then the unfinished ones'
   for i, r in enumerate(rows):
     for stage in ESTIMATED:
@@ -217,7 +220,7 @@ def estimate_left(rows: List[Dict]) -> None:
     for stage in ESTIMATED:
       if stage not in r["stages"] or isinstance(r["stages"][stage], (int, float)):
         continue
-      done, total = work(r["config"], r["run_dir"], stage)
+      done, total = saved[i, stage]
       if total <= done:
         continue
       own = found[i, stage]
