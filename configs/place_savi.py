@@ -2,10 +2,11 @@
 
 Command:  python launch.py --config=configs/place_savi.py:small --workdir=runs/place_savi
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime:  about two and a half hours on one core at :small (SAVi's pretraining and the behaviour cloning about an hour
-          each); on place the behaviour cloning takes three times the steps (15000), plus the task's collection (2000
-          demos: about 45 minutes on one core, shared by its runs); each cell's stage times: results/small/README.md.
-Results:  results/small/place_savi/README.md (not published yet: the `:small` grid publishes it)
+Runtime:  about fourteen hours on one core at :small (SAVi's three pretraining seeds about two and a half hours, the
+          three behaviour-cloning seeds of place's 15000 steps, three times push's, about ten, the evaluation an hour),
+          plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage
+          times: results/small/README.md.
+Results:  results/small/place_savi/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 """
 from configs import common

@@ -4,8 +4,9 @@ frame).
 
 Command:  python launch.py --config=configs/push_ae.py:small --workdir=runs/push_ae
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/push)
-Runtime:  under an hour on one core at :small, plus the task's collection (2000 demos: about 45 minutes on one core,
-          shared by its runs); each cell's stage times: results/small/README.md.
+Runtime:  about two hours on one core at :small (the AE's three pretraining seeds and the three behaviour-cloning seeds
+          about half an hour each, the evaluation three quarters of an hour), plus the task's collection (2000 demos:
+          about 45 minutes on one core, shared by its runs); each cell's stage times: results/small/README.md.
 Results:  results/small/push_ae/README.md
 Its pretrain stage is roboshape/train/pretrain.py; ae.latent_size sets the token width (0: savi.slot_size).
 """
