@@ -155,3 +155,29 @@ def test_a_dead_worker_raises_with_its_stderr_then_restart(pool):
   assert pool._procs[0].popen.pid == alive  # pylint: disable=protected-access
   frames = pool.reset([5, 6])["image"]
   assert frames.shape == (2, RESOLUTION, RESOLUTION, 3)
+
+
+def test_worker_env_fixes_the_instruction_sets_unless_the_caller_sets_them():
+  from roboshape.sim import pool as pool_lib  # pylint: disable=import-outside-toplevel
+  env = pool_lib.worker_env({"PATH": "/bin", "ATEN_CPU_CAPABILITY": "default", "PYTHONPATH": "/elsewhere"})
+  assert env["GALLIUM_OVERRIDE_CPU_CAPS"] == "avx" and env["OMP_NUM_THREADS"] == "1"
+  assert env["ATEN_CPU_CAPABILITY"] == "default"   # the caller's value wins
+  root = pool_lib._ROOT  # pylint: disable=protected-access
+  assert env["PATH"] == "/bin" and env["PYTHONPATH"].split(os.pathsep) == [root, "/elsewhere"]
+
+
+def test_a_worker_pinned_to_one_core_renders_the_frames_of_an_unpinned_one(tmp_path):
+  # A grid lane pins itself and its workers to one core (roboshape/lanes.py), where Mesa's renderer, left to pick
+  # its instruction sets, crashed on one CPU family (roboshape/sim/pool.py WORKER_ENV).
+  code = ("import os, sys, numpy as np; from roboshape.sim import EnvSpec, SimPool\n"
+          "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n"
+          f"with SimPool(EnvSpec('push', resolution={RESOLUTION}), num_workers=1) as p:\n"
+          "  np.save(sys.argv[1], p.reset([5])['image'])\n")
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  with SimPool(EnvSpec("push", resolution=RESOLUTION), num_workers=1) as p:
+    free = p.reset([5])["image"]
+  out = str(tmp_path / "frame.npy")
+  run = subprocess.run([sys.executable, "-c", code, out], cwd=root, env=dict(os.environ, PYTHONPATH=root),
+                       capture_output=True, text=True, timeout=300)
+  assert run.returncode == 0, run.stderr[-2000:]
+  np.testing.assert_array_equal(np.load(out), free)

@@ -32,6 +32,28 @@ from roboshape.sim.spec import EnvSpec, check_seeds
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+# The instruction sets a worker's libraries may pick, fixed rather than read off the CPU, so that an episode's bytes
+# do not follow the machine it was collected on. Mesa's CPU renderer (llvmpipe, under lavapipe) compiles its shaders
+# for the CPU's instruction sets, and frames rendered with SSE4.1-only code differ from those of AVX code; left to
+# itself on AMD's family 1Ah CPUs (AVX-512) it also crashes a process pinned to one core, as a grid lane is.
+# PyTorch, which ManiSkill's controllers run on, picks its kernels the same way, and its portable kernels give other
+# states and actions than its AVX2 ones (AVX-512 gives the AVX2 bytes). AVX (llvmpipe) and AVX2 (PyTorch) are on every
+# x86-64 server CPU of the last decade; elsewhere both variables are ignored. A value the caller's environment sets
+# wins. OpenMP and MKL get one thread each: a worker is one env on one core. The measurements behind this:
+# results/small/README.md, "Machines and speed".
+WORKER_ENV = {"GALLIUM_OVERRIDE_CPU_CAPS": "avx", "ATEN_CPU_CAPABILITY": "avx2",
+              "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def worker_env(parent: Optional[Dict[str, str]] = None) -> Dict[str, str]:
+  """The environment a worker starts with: the parent's (default os.environ), this checkout on PYTHONPATH, and
+  WORKER_ENV's values where the parent sets none."""
+  env = dict(os.environ if parent is None else parent)
+  env["PYTHONPATH"] = _ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+  for name, value in WORKER_ENV.items():
+    env.setdefault(name, value)
+  return env
+
 
 class SimWorkerError(RuntimeError):
   """A simulator worker died, failed a command or stopped answering; the message holds its stderr tail."""
@@ -52,10 +74,7 @@ class _Proc:
     self.index = index
     parent_sock, child_sock = socket.socketpair()
     self.log_path = os.path.join(log_dir, f"worker{index}.log")
-    env = dict(os.environ)
-    env["PYTHONPATH"] = _ROOT + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env.setdefault("OMP_NUM_THREADS", "1")
-    env.setdefault("MKL_NUM_THREADS", "1")
+    env = worker_env()
     with open(self.log_path, "wb") as log:
       self.popen = subprocess.Popen(
           [sys.executable, "-m", "roboshape.sim.worker", str(child_sock.fileno()),
