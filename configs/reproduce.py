@@ -28,7 +28,8 @@ Variants:
          pinned to one core, each logging to <run>/log.txt. Baselines whose weights are absent
          (config.baselines.*.path) are skipped when the grid starts, said in the report. One task's row alone:
          --config.grid.tasks="('push',)" (with --config.grid.train_seeds.push="()"
-         --config.pretrain.train_seeds="(0,)" for one training seed and one SAVi seed).
+         --config.pretrain.train_seeds="(0,)" for one training seed and one SAVi seed). Cells published from
+         another workdir on the same dataset are left out with --config.grid.skip="('place_savi', 'place_ae')".
   paper: {push, pick, place} x {SAVi, R3M, DINO}, 2000 demos per task, 3 seeds x 100 rollouts per level.
 
 Layout: <workdir>/data/<task>/ (one dataset per task, shared by its runs), <workdir>/<task>_<column>/ (one run:
@@ -63,6 +64,8 @@ def get_config(variant: str = "paper"):
   config.grid = ml_collections.ConfigDict(dict(
       tasks=tasks, encoders=encoders,
       publish="results/small" if variant == "small" else "",   # where each evaluated run's results are copied
+      # cells ("<task>_<column>") the grid does not run, e.g. cells published from another workdir on the same dataset
+      skip=(),
       # runs at once, each a child process pinned to its share of the cores: two on the 2-core CPU machine (why:
       # roboshape/lanes.py)
       lanes=2 if variant == "small" else 1,

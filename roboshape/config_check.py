@@ -228,7 +228,7 @@ _SHARED_SECTIONS = {"pretrain": _check_pretrain}
 
 def _check_grid(config) -> None:
   """grid.tasks: a non-empty tuple of known tasks; grid.encoders: of distinct columns, each a registered encoder
-  alone or with options (roboshape/encoders/columns.py); grid.publish a folder."""
+  alone or with options (roboshape/encoders/columns.py); grid.skip: cells of these; grid.publish a folder."""
   tasks = ranges.value(config, "grid.tasks")
   if isinstance(tasks, str) or not isinstance(tasks, (tuple, list)) or not tasks or any(
       t not in envs.TASKS for t in tasks):
@@ -242,6 +242,11 @@ def _check_grid(config) -> None:
       columns.parse(name)
     except UserError as e:
       raise UserError(f"grid.encoders={names!r}: {e}") from None
+  skip = ranges.value(config, "grid.skip") if "skip" in config.grid else ()
+  cells = {rundir.grid_cell(t, c) for t in tasks for c in names}
+  if isinstance(skip, str) or not isinstance(skip, (tuple, list)) or any(s not in cells for s in skip):
+    raise UserError(f"grid.skip={skip!r}: use a tuple of this grid's cells, \"<task>_<column>\" with a task of "
+                    f"grid.tasks and a column of grid.encoders (e.g. ('place_savi',)), or () to run them all.")
   unknown = [t for t in config.grid.get("train_seeds", {}) if t not in envs.TASKS]
   if unknown:
     raise UserError(f"grid.train_seeds names {', '.join(map(repr, unknown))}: use tasks among "

@@ -22,7 +22,9 @@ def grid_configs(config, workdir: str):
   options set policy fields alone (columns.policy_only) serves the encoder its plain column's run pretrained when
   the grid has that column (pretrain.from_workdir, and no pretrain stage of its own): the policy fields change
   nothing pretraining reads, so the two runs would pretrain the same model. `pretrained_from` gives these pairs.
-  `grid.train_seeds`, a {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names;
+  `grid.skip` names cells (rundir.grid_cell) the grid does not run, e.g. cells published from another workdir on the
+  same dataset; a column with options whose plain column is skipped pretrains its own encoder. `grid.train_seeds`, a
+  {task: seeds} mapping, sets policy.train_seeds for the runs of the tasks it names;
   `grid.task_control`, a {task: {field: value}} mapping, updates policy.eval for them (how that task's policies are
   run at control time); `grid.task_train`, the same for policy.train (how long that task's policies are trained).
   """
@@ -30,6 +32,7 @@ def grid_configs(config, workdir: str):
   base = config.to_dict()
   base.pop("grid")
   names = tuple(config.grid.encoders)
+  skip = set(config.grid.get("skip", ()))
 
   def order(column):
     encoder = columns.parse(column)[0]
@@ -38,11 +41,14 @@ def grid_configs(config, workdir: str):
   plain = sorted((c for c in names if columns.parse(c)[0] == c), key=order)
   for task, column in [(t, c) for t in config.grid.tasks for c in plain] + [
       (t, c) for t in config.grid.tasks for c in sorted((c for c in names if c not in plain), key=order)]:
+    if rundir.grid_cell(task, column) in skip:
+      continue
     sub = ml_collections.ConfigDict(base)
-    sub.task, sub.name = task, f"{task}_{column}"
+    sub.task, sub.name = task, rundir.grid_cell(task, column)
     columns.apply(sub, column)
     pretrains = encoders.get(sub.encoder).pretrain
-    if pretrains and sub.encoder in names and column != sub.encoder and columns.policy_only(column):
+    if (pretrains and sub.encoder in names and rundir.grid_cell(task, sub.encoder) not in skip
+        and column != sub.encoder and columns.policy_only(column)):
       sub.pretrain.from_workdir = rundir.grid_run_dir(workdir, task, sub.encoder)
       pretrains = False
     sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))

@@ -278,10 +278,15 @@ def saved_steps(stage_dir: str) -> list:
   return sorted(int(n) for n in names if n.isdigit())
 
 
+def grid_cell(task: str, column: str) -> str:
+  """A grid cell's name, "<task>_<column>" (a column: an encoder, e.g. "savi", or an encoder with options,
+  "savi+proprio"): its run's folder under the grid's workdir, its published folder, a name in grid.skip."""
+  return f"{task}_{column}"
+
+
 def grid_run_dir(workdir: str, task: str, column: str) -> str:
-  """The workdir of one run of a grid: <workdir>/<task>_<column>/ (a column: an encoder, e.g. "savi", or an encoder
-  with options, "savi+proprio")."""
-  return os.path.join(workdir, f"{task}_{column}")
+  """The workdir of one run of a grid: <workdir>/<task>_<column>/ (grid_cell)."""
+  return os.path.join(workdir, grid_cell(task, column))
 
 
 def grid_data_dir(config, workdir: str, task: str) -> str:

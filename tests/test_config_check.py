@@ -56,6 +56,8 @@ BAD_CONFIGS = [
      "grid.encoders"),
     ("grid run with a bad field", ("--config=configs/reproduce.py:tiny", "--config.policy.history=0"),
      "policy.history"),
+    ("a skipped cell not in the grid", ("--config=configs/reproduce.py:tiny", "--config.grid.skip=('pick_savi',)"),
+     "grid.skip"),
     ("grid column of an unknown option", ("--config=configs/reproduce.py:tiny",
                                           "--config.grid.encoders=('savi', 'savi+wings')"), "unknown option 'wings'"),
     ("an option turned on for a whole grid", ("--config=configs/reproduce.py:tiny", "--config.policy.proprio=True"),

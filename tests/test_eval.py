@@ -707,6 +707,19 @@ def test_a_proprio_column_without_its_plain_column_pretrains_its_own_encoder():
   assert "pretrain" in sub.stages and stages.pretrained_from(stages.grid_configs(config, "/w")) == {}
 
 
+def test_a_grid_runs_no_skipped_cell_and_a_proprio_column_of_a_skipped_one_pretrains_its_own():
+  config = reproduce.get_config("small")
+  config.grid.tasks, config.grid.encoders = ("place", "push"), ("savi", "ae", "objects", "savi+proprio")
+  config.grid.skip = ("place_savi", "place_ae")
+  runs = {(t, c): sub for t, c, sub, _ in stages.grid_configs(config, "/w")}
+  assert list(runs) == [("place", "objects"), ("push", "savi"), ("push", "ae"), ("push", "objects"),
+                        ("place", "savi+proprio"), ("push", "savi+proprio")]
+  place, push = runs["place", "savi+proprio"], runs["push", "savi+proprio"]
+  assert (place.pretrain.from_workdir, "pretrain" in place.stages) == ("", True)
+  assert (push.pretrain.from_workdir, "pretrain" in push.stages) == ("/w/push_savi", False)
+  assert stages.pretrained_from(stages.grid_configs(config, "/w")) == {"/w/push_savi+proprio": "/w/push_savi"}
+
+
 def test_a_column_with_options_labels_its_rollouts_its_tables_and_its_published_folder(tmp_path):
   config = common.get_config("push", "savi+proprio", "tiny")
   config.eval.levels, config.eval.num_seeds, config.eval.rollouts_per_seed = ("train",), 1, 2

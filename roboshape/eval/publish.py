@@ -149,7 +149,7 @@ def _check_joins_its_row(task: str, column: str, identity, dest_root: str) -> No
   others = {}
   for name in sorted(os.listdir(dest_root)):
     folder = os.path.join(dest_root, name)
-    if name == f"{task}_{column}" or not os.path.isfile(os.path.join(folder, DATASET)):
+    if name == rundir.grid_cell(task, column) or not os.path.isfile(os.path.join(folder, DATASET)):
       continue
     try:
       with open(os.path.join(folder, "config.json"), encoding="utf-8") as f:
@@ -219,7 +219,7 @@ def record_skip(dest_root: str, task: str, column: str, reason) -> None:
   """Notes in grid.json that the grid skipped the cell, with its one-line `reason`; None: it ran (no longer
   skipped)."""
   record = grid_record(dest_root)
-  key = f"{task}_{column}"
+  key = rundir.grid_cell(task, column)
   if reason is None and key not in record["skipped"]:
     return
   if reason is None:
