@@ -2,10 +2,10 @@
 
 Command:  python launch.py --config=configs/place_state.py:small --workdir=runs/place_state
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime:  under half an hour per training seed on one core at :small (place: 15000 steps, about 35 minutes), plus the
-          task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage times:
-          results/small/README.md.
-Results:  results/small/place_state/README.md (not published yet: the `:small` grid publishes it)
+Runtime:  about an hour and a half on one core at :small (three training seeds of place's 15000 steps, about 25
+          minutes each, and the evaluation, about 10 minutes), plus the task's collection (2000 demos: about 45
+          minutes on one core, shared by its runs); each cell's stage times: results/small/place_state/stages.json.
+Results:  results/small/place_state/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
 Needs a dataset that stores observation/state (every dataset collected since roboshape-envs-2). No pretraining, no
 rendering needed by the encoder.
