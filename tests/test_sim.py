@@ -166,16 +166,15 @@ def test_worker_env_fixes_the_instruction_sets_unless_the_caller_sets_them():
   assert env["PATH"] == "/bin" and env["PYTHONPATH"].split(os.pathsep) == [root, "/elsewhere"]
 
 
-def test_a_worker_pinned_to_one_core_renders_the_frames_of_an_unpinned_one(tmp_path):
+def test_a_worker_pinned_to_one_core_renders_the_frames_of_an_unpinned_one(pool, tmp_path):
   # A grid lane pins itself and its workers to one core (roboshape/lanes.py), where Mesa's renderer, left to pick
   # its instruction sets, crashed on one CPU family (roboshape/sim/pool.py WORKER_ENV).
   code = ("import os, sys, numpy as np; from roboshape.sim import EnvSpec, SimPool\n"
           "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n"
-          f"with SimPool(EnvSpec('push', resolution={RESOLUTION}), num_workers=1) as p:\n"
+          f"with SimPool(EnvSpec('place', resolution={RESOLUTION}), num_workers=1) as p:\n"
           "  np.save(sys.argv[1], p.reset([5])['image'])\n")
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-  with SimPool(EnvSpec("push", resolution=RESOLUTION), num_workers=1) as p:
-    free = p.reset([5])["image"]
+  free = pool.reset([5, 6])["image"][:1]   # the module's unpinned workers
   out = str(tmp_path / "frame.npy")
   run = subprocess.run([sys.executable, "-c", code, out], cwd=root, env=dict(os.environ, PYTHONPATH=root),
                        capture_output=True, text=True, timeout=300)
