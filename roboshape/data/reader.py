@@ -126,7 +126,10 @@ def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iter
     return iter(())
   check_shards(path, state, split)
   builder = tfds.builder_from_directory(path)
-  return _iterate(builder.as_dataset(split=split, shuffle_files=False), path, state, split)
+  # No autocache: every call builds a fresh pipeline that is read once, so TFDS's in-memory cache of a small split
+  # would only copy it (and warn when a caller stops early, as pretraining's first val episodes do).
+  read_config = tfds.ReadConfig(try_autocache=False)
+  return _iterate(builder.as_dataset(split=split, shuffle_files=False, read_config=read_config), path, state, split)
 
 
 class ShardReader:
