@@ -178,17 +178,20 @@ def datasets(cells: Mapping[Tuple[str, str], str]) -> Dict[str, Dict[str, List[s
   return by_task
 
 
-def check_datasets(cells: Mapping[Tuple[str, str], str]) -> None:
-  """Raises UserError, one line naming the cells, when published cells of one task ({(task, column): folder})
-  record different datasets (their dataset.json identities): such cells were trained on other demos and do not
-  belong in one table. A cell without a dataset.json (published before runs recorded one) is not compared."""
-  for task, found in datasets(cells).items():
+def check_datasets(cells: Mapping[Tuple[str, str], str]) -> Dict[str, Dict[str, List[str]]]:
+  """`datasets(cells)`, after raising UserError, one line naming the cells, when published cells of one task
+  ({(task, column): folder}) record different datasets (their dataset.json identities): such cells were trained on
+  other demos and do not belong in one table. A cell without a dataset.json (published before runs recorded one)
+  is not compared."""
+  by_task = datasets(cells)
+  for task, found in by_task.items():
     if len(found) > 1:
       groups = "; ".join(f"{', '.join(os.path.basename(f) for f in folders)} on dataset {identity}"
                          for identity, folders in sorted(found.items(), key=lambda kv: (-len(kv[1]), kv[0])))
       root = os.path.dirname(next(iter(found.values()))[0])
       raise UserError(f"the {task} cells were trained on different datasets ({groups}): publish every cell of a "
                       f"task from runs on one dataset (one grid), or move the odd cells out of {root}.")
+  return by_task
 
 
 def grid_record(dest_root: str) -> Dict:

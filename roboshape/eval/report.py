@@ -22,7 +22,7 @@ import csv
 import json
 import os
 import sys
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from roboshape import encoders as encoders_lib
 from roboshape import fileio
@@ -129,23 +129,27 @@ def build_published_report(root: str) -> Dict[str, str]:
   if not found:
     raise UserError(f"{root} holds no published run (<task>_<encoder>/{rundir.RESULTS_CSV}): publish one first "
                     "(configs/reproduce.py with grid.publish, or roboshape.eval.publish).")
-  publish.check_datasets({key: run["folder"] for key, run in found.items()})   # one dataset per task, or nothing
+  datasets = publish.check_datasets({key: run["folder"] for key, run in found.items()})   # one per task, or nothing
   for run in found.values():       # every run read back before any README is rewritten
     readme.write(run["folder"], run, published_config(run["folder"]))
   grid = publish.grid_record(root)      # the publishing grid's cells: the missing ones are listed too
   named = {t for t, _ in found} | set(grid["tasks"])
   tasks = [t for t in TASKS if t in named] + sorted(named - set(TASKS))
   encoders = list(dict.fromkeys(list(grid["columns"]) + [e for _, e in found]))
-  runs = [(t, e, os.path.join(root, f"{t}_{e}")) for t in tasks for e in encoders]
-  loaded = {(t, e): found.get((t, e)) or (dict(skipped=grid["skipped"][f"{t}_{e}"]) if f"{t}_{e}" in grid["skipped"]
+  runs = [(t, e, os.path.join(root, rundir.grid_cell(t, e))) for t in tasks for e in encoders]
+  skipped = grid["skipped"]
+  loaded = {(t, e): found.get((t, e)) or (dict(skipped=skipped[rundir.grid_cell(t, e)])
+                                         if rundir.grid_cell(t, e) in skipped
                                          else dict(skipped="not published yet", pending=True)) for t, e, _ in runs}
-  return write_report(runs, loaded, list(LEVEL_NAMES), out_dir)
+  return write_report(runs, loaded, list(LEVEL_NAMES), out_dir, datasets)
 
 
 def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str], Dict], levels: List[str],
-                 out_dir: str) -> Dict[str, str]:
+                 out_dir: str, datasets: Optional[Dict[str, Dict[str, List[str]]]] = None) -> Dict[str, str]:
   """Writes report.md, the tables, overall.png, summary.json and results.csv of `runs` (task, encoder, folder),
-  `loaded` holding each one's `load_run` (or `load_published`) result, into out_dir; returns {name: path}."""
+  `loaded` holding each one's `load_run` (or `load_published`) result, into out_dir; returns {name: path}.
+  datasets: the published cells' dataset identities ({task: {identity: [folders]}}, publish.check_datasets), listed
+  under each task's table."""
   os.makedirs(out_dir, exist_ok=True)
   tasks = list(dict.fromkeys(t for t, _, _ in runs))
   encoders = tables.sort_encoders(list(dict.fromkeys(e for _, e, _ in runs)))
@@ -185,7 +189,7 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
     if pending:
       md.append(f"- not published yet: {', '.join(pending)}")
     published = {(task, e): r["folder"] for (t, e), r in loaded.items() if t == task and r.get("folder")}
-    for identity, folders in publish.datasets(published).get(task, {}).items():
+    for identity, folders in (datasets or {}).get(task, {}).items():
       md.append(f"- dataset: `{identity}` (its identity, a hash over the shards' checksums), recorded by "
                 f"{len(folders)} of the {len(published)} published cell(s) in their dataset.json")
     for encoder in encoders:
