@@ -21,6 +21,7 @@ from typing import Callable, Sequence
 from absl import app
 from absl import flags
 
+from roboshape import errors
 from roboshape import rundir
 from roboshape.errors import UserError
 
@@ -75,7 +76,7 @@ def _quiet_after_interrupt() -> None:
 
 
 def _fail(message: str, code: int = 2) -> int:
-  print(f"roboshape: error: {message}", file=sys.stderr)
+  errors.print_error(message)
   return code
 
 

@@ -27,6 +27,7 @@ import sys
 import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence, Set, Tuple
 
+from roboshape import errors
 from roboshape import fileio
 from roboshape.errors import UserError
 
@@ -156,10 +157,9 @@ def main(argv) -> int:
   try:
     run(config, argv[1])
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr, flush=True)
-    return 2
+    return errors.print_error(e)
   except KeyboardInterrupt as e:
-    print("roboshape: interrupted; run the same command to resume", file=sys.stderr, flush=True)
+    print(f"roboshape: {cli.INTERRUPTED}", file=sys.stderr, flush=True)
     return cli.interrupt_code(e)
   return 0
 

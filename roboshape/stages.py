@@ -20,6 +20,7 @@ import ml_collections
 
 from roboshape import config_check
 from roboshape import encoders
+from roboshape import errors
 from roboshape import fileio
 from roboshape import lanes as lanes_lib
 from roboshape import rundir
@@ -196,7 +197,7 @@ def _run_lanes(config, runs, lanes: int) -> None:
     if code == 0:
       _finish_run(config, task, column, sub, job[2], None)
       return
-    message = line.removeprefix("roboshape: error: ") if code == 2 else f"exit status {code}: {line}"
+    message = line.removeprefix(errors.PREFIX) if code == 2 else f"exit status {code}: {line}"
     if code == 2 and encoders.get(sub.encoder).baseline and not message.startswith(DiskFull.PREFIX):
       _finish_run(config, task, column, sub, job[2], message)
     else:

@@ -26,6 +26,7 @@ import os
 import sys
 from typing import Dict, List, Optional, Tuple
 
+from roboshape import errors
 from roboshape import grid
 from roboshape import rundir
 from roboshape.encoders import columns
@@ -322,8 +323,7 @@ def main(argv) -> int:
     if clock:
       print(clock)
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   return 0
 
 

@@ -37,6 +37,7 @@ import os
 import sys
 from typing import Dict, List, Optional
 
+from roboshape import errors
 from roboshape import fileio
 from roboshape import rundir
 from roboshape.envs import MILESTONES
@@ -198,16 +199,25 @@ def table(rows: List[Dict]) -> str:
   return "\n".join(lines)
 
 
-def render(study: str) -> None:
-  """Rewrites the README's generated block from the CSV (the README must hold both markers)."""
+def _readme(study: str) -> str:
+  """The study's README text; a UserError where it is missing or lacks the markers of the generated table."""
   path = os.path.join(study, README_NAME)
+  if not os.path.isfile(path):
+    raise UserError(f"{path} not found: give a study's folder (one with a {README_NAME} holding the lines {BEGIN} "
+                    f"and {END}, e.g. results/small/recipe).")
   with open(path) as f:
     text = f.read()
   if BEGIN not in text or END not in text:
     raise UserError(f"{path} lacks the markers of the generated table: add the lines {BEGIN} and {END}.")
-  head, rest = text.split(BEGIN, 1)
+  return text
+
+
+def render(study: str) -> None:
+  """Rewrites the README's generated block from the CSV (the README must hold both markers)."""
+  head, rest = _readme(study).split(BEGIN, 1)
   _, tail = rest.split(END, 1)
-  fileio.atomic_write_text(path, f"{head}{BEGIN}\n{table(read_rows(study))}\n{END}{tail}")
+  text = f"{head}{BEGIN}\n{table(read_rows(study))}\n{END}{tail}"
+  fileio.atomic_write_text(os.path.join(study, README_NAME), text)
 
 
 def keep_files(workdir: str, folder: str) -> List[str]:
@@ -226,7 +236,9 @@ def keep_files(workdir: str, folder: str) -> List[str]:
 
 def add(study: str, workdir: str, name: str) -> Dict:
   """Adds (or replaces) the probe `name` from `workdir`: its files in <study>/<name>/ (keep_files), its row in the
-  CSV; then rebuilds the README's table."""
+  CSV; then rebuilds the README's table. A study without a README fit for the table is refused before anything
+  is written."""
+  _readme(study)
   row = probe_row(workdir, name, read_baseline(study))
   keep_files(workdir, os.path.join(study, name))
   rows = [r for r in read_rows(study) if r["probe"] != name] + [row]
@@ -249,8 +261,7 @@ def main(argv) -> int:
     else:
       render(args.study)
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   return 0
 
 

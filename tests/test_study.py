@@ -134,6 +134,24 @@ def test_the_command_says_a_bad_input_in_one_line_as_every_tool_does(tmp_path, c
   assert (tmp_path / "README.md").read_text() == "no markers\n"
 
 
+def test_a_folder_without_a_study_readme_is_refused_before_anything_is_written(tmp_path, capsys):
+  workdir = str(tmp_path / "run")
+  _fake_run(workdir)
+  for folder in (tmp_path / "absent", tmp_path / "empty"):
+    if folder.name == "empty":
+      folder.mkdir()
+    assert study.main([str(folder)]) == 2
+    assert study.main([str(folder), workdir, "--name", "x"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"roboshape: error: {folder / 'README.md'} not found: give a study's folder (one with a "
+                   f"README.md holding the lines {study.BEGIN} and {study.END}, e.g. results/small/recipe)."] * 2
+  assert not (tmp_path / "absent").exists() and os.listdir(tmp_path / "empty") == []
+  (tmp_path / "empty" / "README.md").write_text("no markers\n")
+  with pytest.raises(UserError, match="lacks the markers"):
+    study.add(str(tmp_path / "empty"), workdir, "x")
+  assert os.listdir(tmp_path / "empty") == ["README.md"]        # no probe files, no CSV
+
+
 def test_the_committed_recipe_study_readme_equals_its_csv_and_the_csv_its_probes_files():
   rows = study.read_rows(RECIPE)
   assert rows, "results/small/recipe/probes.csv holds no probe"

@@ -14,6 +14,7 @@ from typing import Dict
 
 import numpy as np
 
+from roboshape import errors
 from roboshape.errors import UserError
 from roboshape.envs import ids
 
@@ -80,8 +81,7 @@ def main(argv=None) -> int:
       raise UserError(f"split {args.split!r} of {path} has fewer than {args.episode + 1} episodes.")
     written = write(episode, args.out, args.scale, args.fps, args.frames, not args.no_segmentation)
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   print(f"seed {episode['seed']}: {episode['image'].shape[0]} steps -> {written['animation']}, {written['strip']}")
   return 0
 

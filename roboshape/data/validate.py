@@ -17,6 +17,7 @@ from typing import Any, Dict, List
 import numpy as np
 
 from roboshape import data as data_lib
+from roboshape import errors
 from roboshape.errors import UserError
 from roboshape.envs import ids
 from roboshape.envs import state as state_lib
@@ -186,8 +187,7 @@ def main(argv=None) -> int:
     path = find_dataset(args.path)
     result = validate(path)
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   cfg = result["config"]
   print(f"{path}: task {cfg['task']}, level {cfg['level']}, {cfg['resolution']}x{cfg['resolution']}, "
         f"env {result['env_version']}")

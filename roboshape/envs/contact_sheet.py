@@ -10,12 +10,10 @@ import TensorFlow next to it).
 import argparse
 import sys
 
-import numpy as np
-
 from roboshape import envs
+from roboshape import errors
 from roboshape import fileio
 from roboshape.envs import ids
-
 
 
 def render_frames(tasks, levels, seeds, resolution: int, segmentation: bool):
@@ -74,14 +72,12 @@ def main(argv=None) -> int:
       for level in levels:
         envs.check_args(task, level, args.resolution)
   except ValueError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   seeds = list(range(args.first_seed, args.first_seed + args.seeds))
   try:
     frames = render_frames(tasks, levels, seeds, args.resolution, args.segmentation)
   except RuntimeError as e:
-    print(f"roboshape: error: {envs.explain_construction_error(e)}", file=sys.stderr)
-    return 2
+    return errors.print_error(envs.explain_construction_error(e))
   save_sheet(frames, seeds, args.out, args.segmentation)
   print(f"contact sheet: {args.out}")
   return 0

@@ -46,6 +46,7 @@ import sys
 from typing import Dict, List, Mapping, Tuple
 
 from roboshape import data as data_lib
+from roboshape import errors
 from roboshape import fileio
 from roboshape import rundir
 from roboshape.encoders import columns
@@ -249,8 +250,7 @@ def main(argv) -> int:
                       "let the grid publish them (--config.grid.publish).")
     dest = publish(config, argv[1], argv[2])
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   print(f"[roboshape] published {argv[1]} to {dest}", flush=True)
   return 0
 

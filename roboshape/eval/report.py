@@ -25,6 +25,7 @@ import sys
 from typing import Dict, List, Optional, Tuple
 
 from roboshape import encoders as encoders_lib
+from roboshape import errors
 from roboshape import fileio
 from roboshape import rundir
 from roboshape.envs import TASKS
@@ -275,8 +276,7 @@ def main(argv) -> int:
   try:
     paths = build_published_report(argv[1])
   except UserError as e:
-    print(f"roboshape: error: {e}", file=sys.stderr)
-    return 2
+    return errors.print_error(e)
   print(f"[roboshape] report: {os.path.abspath(paths['report.md'])}", flush=True)
   return 0
 
