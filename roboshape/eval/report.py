@@ -189,10 +189,10 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
     pending = [tables.encoder_name(e) for e in encoders if loaded.get((task, e), {}).get("pending")]
     if pending:
       md.append(f"- not published yet: {', '.join(pending)}")
-    published = {(task, e): r["folder"] for (t, e), r in loaded.items() if t == task and r.get("folder")}
+    published = sum(1 for (t, _), r in loaded.items() if t == task and r.get("folder"))
     for identity, folders in (datasets or {}).get(task, {}).items():
       md.append(f"- dataset: `{identity}` (its identity, a hash over the shards' checksums), recorded by "
-                f"{len(folders)} of the {len(published)} published cell(s) in their dataset.json")
+                f"{len(folders)} of the {published} published cell(s) in their dataset.json")
     for encoder in encoders:
       r = loaded.get((task, encoder))
       if r is not None and "skipped" in r:
