@@ -18,9 +18,10 @@ unfinished training or evaluation stage's remaining work (training steps over it
 core-seconds per unit: a training stage's own pace between its two newest checkpoints of this attempt (`pace`), else
 what the finished stages of its column (else of its encoder, for a column with options) took, else the unfinished
 ones' pace or logged time over their saved work (the latter an overestimate by the work lost to kills and by the
-compilations); an evaluation of a column none of whose rollouts are done takes every column's rate (the simulator and
-renderer dominate it). It does not count collections and caches (minutes a run; a task's collection is shared), nor
-that rollouts of a longer horizon cost more than the ones it was measured on.
+compilations), else what the cells published where the grid publishes took (grid.publish: results it ran earlier,
+perhaps on another machine; `published_rows`); an evaluation of a column none of whose rollouts are done takes every
+column's rate (the simulator and renderer dominate it). It does not count collections and caches (minutes a run; a
+task's collection is shared), nor that rollouts of a longer horizon cost more than the ones it was measured on.
 """
 import os
 import sys
@@ -179,10 +180,11 @@ def run_status(stages, run_dir: str, config=None) -> Dict:
                         if isinstance(entry, dict) and entry.get("state") == "running" and "attempt" in entry})
 
 
-def estimate_left(rows: List[Dict]) -> None:
+def estimate_left(rows: List[Dict], published: List[Dict] = ()) -> None:
   """Sets each unfinished run's row's `left`: the rough core-hours its stages of ESTIMATED have left (module
   docstring), None where neither its own pace nor any stage of its column or encoder gives a rate; None too for a
-  done or skipped run. Rows need `config` and `run_dir` (`workdir_status` gives them)."""
+  done or skipped run; and `published_rate` True where a published cell's rate (`published`: `published_rows`, the
+  last resort) went into it. Rows need `config` and `run_dir` (`workdir_status` gives them)."""
   def keys(column, stage):   # its column's rate, else its encoder's (a column with options), else any column's rollouts
     return tuple(dict.fromkeys(((column, stage), (columns.parse(column)[0], stage))
                                + ((("*", stage),) if stage == "evaluate" else ())))
@@ -206,15 +208,19 @@ def estimate_left(rows: List[Dict]) -> None:
            for i, r in enumerate(rows) for stage in ESTIMATED
            if stage in r["stages"] and not isinstance(r["stages"][stage], (int, float))}
   found = {(i, stage): measured(i, r, stage) for i, r in enumerate(rows) for stage in ESTIMATED}
-  spent, units = {}, {}                 # per (key, unfinished): the finished stages' rates, then the unfinished ones'
-  for i, r in enumerate(rows):
+  rated = [(rows[i]["encoder"], stage, m, 0 if m[2] == "finished" else 1) for (i, stage), m in found.items() if m]
+  for r in published:                                             # their finished stages alone
     for stage in ESTIMATED:
-      m = found[i, stage]
-      for key in keys(r["encoder"], stage) if m else ():
-        key = key + (m[2] != "finished",)
-        spent[key], units[key] = spent.get(key, 0.0) + m[0], units.get(key, 0) + m[1]
+      m = measured(None, r, stage) if isinstance(r["stages"].get(stage), (int, float)) else None
+      if m:
+        rated.append((r["encoder"], stage, m, 2))
+  spent, units = {}, {}    # per (key, tier): this workdir's finished stages (0), its unfinished ones (1), published (2)
+  for encoder, stage, m, tier in rated:
+    for key in keys(encoder, stage):
+      key = key + (tier,)
+      spent[key], units[key] = spent.get(key, 0.0) + m[0], units.get(key, 0) + m[1]
   for i, r in enumerate(rows):
-    r["left"] = None
+    r["left"], r["published_rate"] = None, False
     if r["state"] in ("done", "skipped"):
       continue
     left = 0.0
@@ -228,12 +234,13 @@ def estimate_left(rows: List[Dict]) -> None:
       if own and own[2] == "pace":
         rate = own[0] / own[1]                                          # its own pace, now
       else:
-        key = next((k + (partial,) for partial in (False, True) for k in keys(r["encoder"], stage)
-                    if units.get(k + (partial,))), None)
+        key = next((k + (tier,) for tier in (0, 1, 2) for k in keys(r["encoder"], stage)
+                    if units.get(k + (tier,))), None)
         if key is None:
           left = None
           break
         rate = spent[key] / units[key]
+        r["published_rate"] |= key[-1] == 2
       left += (total - done) * rate / 3600
     r["left"] = left
 
@@ -248,7 +255,29 @@ def workdir_status(workdir: str, config=None) -> List[Dict]:
     runs = [(config.task, columns.of_config(config), config, workdir)]
   rows = [dict(task=t, encoder=e, run_dir=d, config=sub, **run_status(tuple(sub.stages), d, sub))
           for t, e, sub, d in runs]
-  estimate_left(rows)
+  estimate_left(rows, published_rows(config))
+  return rows
+
+
+def published_rows(config) -> List[Dict]:
+  """Rows (as `workdir_status` makes them) of the cells published where a grid publishes (grid.publish, relative to
+  the current folder), each with its published config.json and stage log; `estimate_left`'s last resort for a
+  column no run of the grid gives a rate yet. A cell whose files cannot be read is left out (the report is where a
+  damaged cell is refused); [] for one run's workdir or a grid that does not publish."""
+  root = config.grid.get("publish", "") if "grid" in config else ""
+  if not root or not os.path.isdir(root):
+    return []
+  rows = []
+  for name in sorted(os.listdir(root)):
+    folder = os.path.join(root, name)
+    if not os.path.isfile(rundir.config_path(folder)) or not os.path.isfile(rundir.stage_log_path(folder)):
+      continue
+    try:
+      sub = rundir.load_config(folder)
+      rows.append(dict(task=sub.task, encoder=columns.of_config(sub), run_dir=folder, config=sub,
+                       **run_status(tuple(sub.stages), folder)))
+    except UserError:
+      continue
   return rows
 
 
@@ -303,8 +332,12 @@ def render(rows: List[Dict], lanes: int = 1) -> str:
                    "or saved work to take a rate from.")
     else:
       left = sum(r['left'] or 0.0 for r in rows)
+      borrowed = [f"{r['task']} x {r['encoder']}" for r in rows
+                  if r.get("left") is not None and r.get("published_rate")]
       lines.append(f"About {left:.1f} core-hours left, at the training stages' own "
                    "pace and the rates of the finished stages (collections and caches not counted)"
+                   + (f"; {', '.join(borrowed)} partly at the rates of the cells published where the grid publishes "
+                      "(grid.publish), perhaps on another machine" if borrowed else "")
                    + (f"; no rate yet for {', '.join(unknown)}" if unknown else "")
                    + (f"; at least {left / lanes:.1f} hours of wall time on the grid's {lanes} lanes (grid.lanes, "
                       "one core each)" if lanes > 1 else "") + ".")

@@ -210,6 +210,43 @@ def test_status_estimates_the_core_hours_left_from_the_finished_stages_of_each_c
       "hours of wall time on the grid's 2 lanes (grid.lanes, one core each).")
 
 
+def test_a_column_no_run_of_the_grid_rates_takes_the_rate_of_the_cells_published_where_the_grid_publishes(tmp_path):
+  config = common.get_config("push", "state", "tiny")
+  published = str(tmp_path / "published")
+  config.grid = dict(tasks=("push", "pick"), encoders=("state", "objects"), publish=published)
+  workdir = str(tmp_path / "grid")
+  rundir.save_config(config, workdir)
+  # an objects cell published earlier: its policy took 1 core-hour, its evaluation half of one
+  cell = os.path.join(published, rundir.grid_cell("push", "objects"))
+  cell_config = common.get_config("push", "objects", "tiny")
+  rundir.save_config(cell_config, cell)
+  log = {stage: dict(state="done", seconds=1.0, core_seconds=1.0) for stage in cell_config.stages}
+  log["train_policy"]["core_seconds"], log["evaluate"]["core_seconds"] = 3600.0, 1800.0
+  with open(rundir.stage_log_path(cell), "w") as f:
+    json.dump(log, f)
+  os.makedirs(os.path.join(published, "report"))                   # a folder that is no cell is passed over
+  assert [(r["task"], r["encoder"], r["state"]) for r in status.published_rows(config)] == [
+      ("push", "objects", "done")]
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  for task in ("push", "pick"):
+    assert rows[(task, "objects")]["left"] == pytest.approx(1.5) and rows[(task, "objects")]["published_rate"]
+    assert rows[(task, "state")]["left"] is None                    # no state cell anywhere: no rate
+  assert status.render(list(rows.values())).endswith(
+      "About 3.0 core-hours left, at the training stages' own pace and the rates of the finished stages "
+      "(collections and caches not counted); push x objects, pick x objects partly at the rates of the cells "
+      "published where the grid publishes (grid.publish), perhaps on another machine; no rate yet for push x "
+      "state, pick x state.")
+  # a run of the grid's own that finished takes precedence over the published cell
+  done = rundir.grid_run_dir(workdir, "push", "objects")
+  os.makedirs(done)
+  with open(rundir.stage_log_path(done), "w") as f:
+    json.dump(dict(log, train_policy=dict(state="done", seconds=1.0, core_seconds=7200.0)), f)
+  rows = {(r["task"], r["encoder"]): r for r in status.workdir_status(workdir)}
+  assert rows[("pick", "objects")]["left"] == pytest.approx(2.5) and not rows[("pick", "objects")]["published_rate"]
+  config.grid.publish = ""
+  assert status.published_rows(config) == [] and status.published_rows(cell_config) == []
+
+
 def test_a_running_training_stage_is_estimated_at_its_own_pace_between_checkpoints_of_this_attempt(tmp_path):
   config = common.get_config("push", "state", "tiny")
   config.grid = dict(tasks=("push", "pick"), encoders=("state",), publish="")
