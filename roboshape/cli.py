@@ -75,11 +75,6 @@ def _quiet_after_interrupt() -> None:
   threading.excepthook = lambda args: None
 
 
-def _fail(message: str, code: int = 2) -> int:
-  errors.print_error(message)
-  return code
-
-
 def _flat_keys(config, prefix=""):
   for key, value in config.items():
     path = f"{prefix}{key}"
@@ -172,14 +167,14 @@ def run_app(main: Callable[[Sequence[str]], None], argv: Sequence[str]) -> int:
   try:
     _check_overrides(argv)
   except UserError as e:
-    return _fail(str(e))
+    return errors.print_error(str(e))
   if flags.FLAGS["config"].present == 0 and "config" in flags.FLAGS and flags.FLAGS["config"].value is None:
-    return _fail("--config is required, e.g. --config=configs/pick_savi.py:tiny")
+    return errors.print_error("--config is required, e.g. --config=configs/pick_savi.py:tiny")
   previous = install_signal_handlers()
   try:
     app.run(main, argv=[argv[0]] + [a for a in argv[1:] if not a.startswith("-")], flags_parser=lambda a: a)
   except UserError as e:
-    return _fail(str(e))
+    return errors.print_error(str(e))
   except KeyboardInterrupt as e:
     _quiet_after_interrupt()
     print(f"roboshape: {INTERRUPTED}", file=sys.stderr, flush=True)
