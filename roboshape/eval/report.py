@@ -138,10 +138,12 @@ def build_published_report(root: str) -> Dict[str, str]:
   tasks = [t for t in TASKS if t in named] + sorted(named - set(TASKS))
   encoders = list(dict.fromkeys(list(grid["columns"]) + [e for _, e in found]))
   runs = [(t, e, os.path.join(root, rundir.grid_cell(t, e))) for t in tasks for e in encoders]
-  skipped = grid["skipped"]
-  loaded = {(t, e): found.get((t, e)) or (dict(skipped=skipped[rundir.grid_cell(t, e)])
-                                         if rundir.grid_cell(t, e) in skipped
-                                         else dict(skipped="not published yet", pending=True)) for t, e, _ in runs}
+
+  def unpublished(cell):          # a cell of the grid without results: skipped (with the grid's reason) or pending
+    reason = grid["skipped"].get(cell)
+    return dict(skipped=reason) if reason is not None else dict(skipped="not published yet", pending=True)
+
+  loaded = {(t, e): found.get((t, e)) or unpublished(rundir.grid_cell(t, e)) for t, e, _ in runs}
   return write_report(runs, loaded, list(LEVEL_NAMES), out_dir, datasets)
 
 
