@@ -148,8 +148,8 @@ def wait_to_be_interrupted(config, run_dir: str) -> None:
   reaches it, and notes that it did, as a training stage saves its steps when interrupted."""
   import time  # pylint: disable=import-outside-toplevel
   del config
-  open(os.path.join(run_dir, "started"), "w").close()
-  try:
+  try:                                 # the note inside: an interrupt that comes as it is written still counts
+    open(os.path.join(run_dir, "started"), "w").close()
     time.sleep(120)
   except KeyboardInterrupt:
     time.sleep(1.0)                    # saving: a second signal now must not break it off
