@@ -460,6 +460,8 @@ def test_grid_configs_and_report_with_skipped_baseline(tmp_path, evaluated):
   paths = report.build_report(config, str(tmp_path))
   md = open(paths["report.md"]).read()
   assert "- skipped: R3M on push: R3M weights not found" in md
+  assert "- the paper's R3M column has no cell here (skipped on push: its line above says why)." in md
+  assert md.count("R3M weights not found") == 1          # the reason once, beside the skipped cell's line
   assert "| | R3M | SAVi |" in md and "| none | - |" in md
   assert os.path.getsize(paths["overall.png"]) > 0 and os.path.getsize(paths["table_push.tex"]) > 0
 

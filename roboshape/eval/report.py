@@ -211,9 +211,11 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
       for encoder in paper.ENCODERS:
         r = loaded.get((task, encoder))
         if r is None or "skipped" in r:
-          why = r["skipped"] if r is not None else (
-              "not in this report's runs; the grid skips a baseline whose weights are absent"
-              if encoders_lib.get(encoder).baseline else "not in this report's runs")
+          if r is None:
+            why = ("not in this report's runs; the grid skips a baseline whose weights are absent"
+                   if encoders_lib.get(encoder).baseline else "not in this report's runs")
+          else:                     # a skipped cell's reason stands once, in its "- skipped:" line above
+            why = r["skipped"] if r.get("pending") else f"skipped on {task}: its line above says why"
           md.append(f"- the paper's {tables.encoder_name(encoder)} column has no cell here ({why}).")
     md.append("")
     if any(t == task for t, _ in answer.cells):
