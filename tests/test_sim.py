@@ -3,6 +3,7 @@ loop, worker failures."""
 import os
 import subprocess
 import sys
+import tempfile
 
 import numpy as np
 import pytest
@@ -132,12 +133,14 @@ def test_closed_loop_input_checks(pool):
     list(pool.collect([0.5]))
 
 
-def test_env_construction_error_comes_back_as_one_line():
+def test_env_construction_error_comes_back_as_one_line(tmp_path, monkeypatch):
+  monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))   # where the pool puts its workers' logs
   spec = EnvSpec("pick", resolution=RESOLUTION)
   object.__setattr__(spec, "task", "juggle")  # slips past the parent's check, fails inside the worker
   with pytest.raises(UserError) as info:
     SimPool(spec, num_workers=1)
   assert "unknown task 'juggle'" in str(info.value) and "\n" not in str(info.value)
+  assert not os.listdir(tmp_path)   # the failed pool closed itself and removed its log folder
 
 
 def test_a_dead_worker_raises_with_its_stderr_then_restart(pool):
@@ -176,7 +179,11 @@ def test_a_worker_pinned_to_one_core_renders_the_frames_of_an_unpinned_one(pool,
   root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
   free = pool.reset([5, 6])["image"][:1]   # the module's unpinned workers
   out = str(tmp_path / "frame.npy")
-  run = subprocess.run([sys.executable, "-c", code, out], cwd=root, env=dict(os.environ, PYTHONPATH=root),
-                       capture_output=True, text=True, timeout=300)
+  temp = tmp_path / "temp"
+  temp.mkdir()
+  run = subprocess.run([sys.executable, "-c", code, out], cwd=root,
+                       env=dict(os.environ, PYTHONPATH=root, TMPDIR=str(temp)), capture_output=True, text=True,
+                       timeout=300)
   assert run.returncode == 0, run.stderr[-2000:]
   np.testing.assert_array_equal(np.load(out), free)
+  assert not os.listdir(temp)   # the pool's log folder went with it

@@ -15,6 +15,7 @@ import collections
 import dataclasses
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -152,6 +153,7 @@ class SimPool:
   def restart(self) -> None:
     """Replaces every dead (or never started) worker with a fresh one and waits until they are ready."""
     fresh = []
+    os.makedirs(self._log_dir, exist_ok=True)   # close() removed it
     for i, proc in enumerate(self._procs):
       if proc is None or not proc.alive():
         if proc is not None:
@@ -170,7 +172,8 @@ class SimPool:
     self._active = 0
 
   def close(self) -> None:
-    """Asks every worker to exit, then kills what is left."""
+    """Asks every worker to exit, then kills what is left and removes the workers' log folder (a pool is made per
+    evaluation, so a long grid would otherwise leave hundreds of them in the temp folder)."""
     for proc in self._procs:
       if proc is not None and proc.alive():
         try:
@@ -186,6 +189,7 @@ class SimPool:
           pass
         proc.kill()
     self._procs = [None] * self.num_envs
+    shutil.rmtree(self._log_dir, ignore_errors=True)
 
   def __enter__(self) -> "SimPool":
     return self
