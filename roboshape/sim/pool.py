@@ -172,8 +172,8 @@ class SimPool:
     self._active = 0
 
   def close(self) -> None:
-    """Asks every worker to exit, then kills what is left and removes the workers' log folder (a pool is made per
-    evaluation, so a long grid would otherwise leave hundreds of them in the temp folder)."""
+    """Asks every worker to exit, then kills what is left and removes the workers' log folder (the evaluation makes a
+    pool per level, so a grid would otherwise leave hundreds of them in the temp folder)."""
     for proc in self._procs:
       if proc is not None and proc.alive():
         try:
