@@ -16,7 +16,9 @@ would; everything it prints goes to RUN_DIR/log.txt (appended across resumes). L
 of this process's affinity, and a job's simulator workers inherit them. Ctrl-C or SIGTERM here sends SIGTERM to
 every child (each stops the way an interrupted run stops and resumes the same way) and re-raises here; a parent
 that dies any other way (SIGKILL) takes its children with it (`child_setup`). Each child holds its run's workdir
-(rundir.hold_workdir), so a second grid on the same runs stops in one line instead of running them twice.
+(rundir.hold_workdir), so a second grid on the same runs stops in one line instead of running them twice. When
+no run is pending and one is left running, it is stopped and resumed on every core (`_widen`): a grid's last run
+does not leave the other lanes' cores idle.
 """
 import ctypes
 import os
@@ -34,6 +36,9 @@ from roboshape.errors import UserError
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 _PR_SET_PDEATHSIG = 1   # linux/prctl.h
 LOG_FILE = "log.txt"
+# how a child stopped by SIGTERM exits: 143 from a run (cli.interrupt_code), killed by it before its handlers were in
+# place, or killed 60 s on (`_interrupt`)
+_STOPPED = (128 + signal.SIGTERM, -signal.SIGTERM, -signal.SIGKILL)
 Job = Tuple[str, Any, str]        # (name, config, run_dir)
 Run = Callable[[Any, str], None]  # run(config, run_dir): a module-level function, so it pickles by name
 
@@ -109,12 +114,13 @@ def next_job(pending: Sequence[Job], running_dirs: Set[str], after: Mapping[str,
 
 
 def run_parallel(run: Run, jobs: Sequence[Job], lanes: int, on_done: Callable[[Job, int, str], None],
-                 poll_seconds: float = 2.0, after: Optional[Mapping[str, str]] = None) -> None:
+                 poll_seconds: float = 2.0, after: Optional[Mapping[str, str]] = None,
+                 widen_last: bool = True) -> None:
   """Runs `run(config, run_dir)` of each job in its own child, in order, up to `lanes` at once, one lane per share of
   the cores (`lane_cores`); calls `on_done(job, exit code, last line of its log)` as each one ends (exit code 2: a
   one-line UserError). `after` maps a job's run_dir to the run_dir of a job it waits for (a run that serves another
   run's pretrained encoder): it starts once that one has ended, and the jobs behind it may start before it
-  (`next_job`)."""
+  (`next_job`). With `widen_last`, the last run left gets the cores no other run is left to use (`_widen`)."""
   free = lane_cores(lanes)
   pending = list(jobs)
   running = []      # (job, child, cores, start)
@@ -124,7 +130,11 @@ def run_parallel(run: Run, jobs: Sequence[Job], lanes: int, on_done: Callable[[J
         index = next_job(pending, {e[0][2] for e in running}, after or {})
         if index is None:
           break
-        job, cores = pending.pop(index), free.pop(0)
+        job = pending.pop(index)
+        if widen_last and not pending and not running:    # the last run, and no other: every free core
+          cores, free = set().union(*free), []
+        else:
+          cores = free.pop(0)
         print(f"[roboshape] lane on cores {sorted(cores)}: {job[0]} -> {job[2]} (log: "
               f"{os.path.join(job[2], LOG_FILE)})", flush=True)
         running.append((job, _start(run, job, cores), cores, time.time()))
@@ -137,9 +147,26 @@ def run_parallel(run: Run, jobs: Sequence[Job], lanes: int, on_done: Callable[[J
         print(f"[roboshape] {job[0]} ended in {time.time() - start:.0f}s with status {child.returncode}"
               + ("" if child.returncode == 0 else f": {line}"), flush=True)
         on_done(job, child.returncode, line)
+      if widen_last and not pending and free and len(running) == 1:
+        _widen(run, running, free)
   except BaseException:
     _interrupt([child for _, child, _, _ in running])
     raise
+
+
+def _widen(run: Run, running: list, free: List[Set[int]]) -> None:
+  """The one run still going while no run is pending: stops it (SIGTERM, so it saves its steps as an interrupted run
+  does) and starts it again on its own cores and every free one, where it resumes with one JAX device per core.
+  Why: a grid's last run is often its longest (a pretraining run of place), and on one core of two it would leave
+  the other idle for hours; what the stop costs is the child's start (JAX, its data) once more. A child that ended
+  by itself before the signal reached it stays in `running`, reported as any ended child is."""
+  job, child, cores, start = running[0]
+  wider = set(cores).union(*free)
+  print(f"[roboshape] {job[0]} is the last run left: it stops and resumes on cores {sorted(wider)}", flush=True)
+  _interrupt([child])
+  if child.returncode in _STOPPED:
+    free.clear()
+    running[0] = (job, _start(run, job, wider), wider, start)
 
 
 def main(argv) -> int:

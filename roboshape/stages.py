@@ -117,7 +117,8 @@ def run_grid(config, workdir: str) -> None:
   before the first run starts. Every run's config and workdir are checked before the first one starts.
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
-  go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt).
+  go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt);
+  the last run left is resumed on every core.
   The grid holds its workdir for the whole grid, and each run its own (rundir.hold_workdir). The grid's stage log
   (<workdir>/stages.json, entry rundir.GRID_CLOCK) adds up the wall time of its attempts: how long the whole grid
   took, across restarts, which no run's own log can tell (`roboshape.status` prints it).

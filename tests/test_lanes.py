@@ -43,7 +43,7 @@ def test_children_run_pinned_and_report_their_exit_codes(tmp_path):
     jobs.append((name, config, str(tmp_path / name)))
   ended = {}
   lanes.run_parallel(stages.run, jobs, 2, lambda job, code, line: ended.update({job[0]: (code, line)}),
-                     poll_seconds=0.2)
+                     poll_seconds=0.2, widen_last=False)
   assert ended["a"][0] == 0
   assert ended["bad"][0] == 2 and ended["bad"][1].startswith("roboshape: error: eval.levels")
   assert json.load(open(tmp_path / "a" / "config.json"))["encoder"] == "state"
@@ -188,3 +188,39 @@ def test_a_grid_in_the_background_stops_its_lanes_as_interrupted_runs(tmp_path, 
   log = open(os.path.join(run_dir, lanes.LOG_FILE)).read()
   assert os.path.exists(os.path.join(run_dir, "interrupted")), log           # the interrupt reached the run
   assert log.rstrip().endswith("roboshape: interrupted; run the same command to resume")
+
+
+def note_cores(config, run_dir: str) -> None:
+  """A lane's run that appends how many cores it holds to <run_dir>/cores.txt; on one core with `config.hold` it
+  then waits to be interrupted, and with `config.wait_for` it returns once that file exists."""
+  import time  # pylint: disable=import-outside-toplevel
+  with open(os.path.join(run_dir, "cores.txt"), "a") as f:
+    f.write(f"{len(os.sched_getaffinity(0))}\n")
+  deadline = time.time() + 120
+  while config.wait_for and not os.path.exists(config.wait_for) and time.time() < deadline:
+    time.sleep(0.05)
+  if config.hold and len(os.sched_getaffinity(0)) == 1:
+    time.sleep(120)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two cores")
+def test_the_last_run_left_resumes_on_the_cores_the_other_lanes_left(tmp_path, monkeypatch, capsys):
+  import ml_collections  # pylint: disable=import-outside-toplevel
+  here = os.path.dirname(os.path.abspath(__file__))
+  monkeypatch.setenv("PYTHONPATH", here + os.pathsep + os.environ.get("PYTHONPATH", ""))  # children unpickle
+  long_dir, short_dir, alone_dir = (str(tmp_path / name) for name in ("long", "short", "alone"))
+  jobs = [("long", ml_collections.ConfigDict(dict(name="long", hold=True, wait_for="")), long_dir),
+          ("short", ml_collections.ConfigDict(dict(name="short", hold=False,
+                                                   wait_for=os.path.join(long_dir, "cores.txt"))), short_dir)]
+  ended = []
+  lanes.run_parallel(note_cores, jobs, 2, lambda job, code, line: ended.append((job[0], code)), poll_seconds=0.2)
+  assert ended == [("short", 0), ("long", 0)]                  # the stop in between is no end of the run
+  n = len(os.sched_getaffinity(0))
+  assert open(os.path.join(short_dir, "cores.txt")).read().split() == ["1"]
+  assert open(os.path.join(long_dir, "cores.txt")).read().split() == ["1", str(n)]   # stopped, resumed on all
+  assert f"long is the last run left: it stops and resumes on cores {sorted(os.sched_getaffinity(0))}" in (
+      capsys.readouterr().out)
+  lanes.run_parallel(note_cores, [("alone", jobs[0][1], alone_dir)], 2, lambda *a: None, poll_seconds=0.2)
+  assert open(os.path.join(alone_dir, "cores.txt")).read().split() == [str(n)]       # alone: every core at once
+  lanes.run_parallel(note_cores, jobs[1:], 2, lambda *a: None, poll_seconds=0.2, widen_last=False)
+  assert open(os.path.join(short_dir, "cores.txt")).read().split() == ["1", "1"]     # unless asked not to
