@@ -196,6 +196,30 @@ def test_encoders_that_never_succeed_cannot_be_separated_nor_their_robustness_co
   assert flat.count("cannot decide claim") == 2
 
 
+def test_an_option_is_read_against_its_plain_encoder_on_the_same_start_states():
+  encoders = ["ae", "ae+proprio", "savi", "savi+proprio"]
+  loaded = _loaded({("push", "savi"): dict(train=0.5, L1=0.5), ("push", "savi+proprio"): dict(train=1.0, L1=1.0),
+                    ("push", "ae"): dict(train=0.5, L1=0.5), ("push", "ae+proprio"): dict(train=0.5, L1=0.5),
+                    ("pick", "savi+proprio"): dict(train=0.5, L1=0.5)})     # pick: no plain SAVi to read it against
+  a = claims.answer(loaded, ["push", "pick"], encoders, ["train", "L1"])
+  assert claims.with_options(encoders) == [("ae+proprio", "ae"), ("savi+proprio", "savi")]
+  assert claims.with_options(["savi+proprio", "ae"]) == [] and not any(k[0] == "pick" for k in a.options)
+  helped = a.options[("push", "savi+proprio", claims.LEVELS_MEAN)]   # starts 20..39 succeed only with the option
+  assert helped.value == pytest.approx(0.5) and helped.side == 1 and helped.low > 0.3
+  same = a.options[("push", "ae+proprio", claims.LEVELS_MEAN)]       # the same starts succeed: 0 in every resample
+  assert same.value == same.low == same.high == 0.0 and same.side == 0
+  flat = " ".join(claims.verdict(a, ["push", "pick"], encoders).split())
+  assert f"push, SAVi+proprio − SAVi: {claims.interval(helped, signed=True)}: helps." in flat
+  assert ("push, AE+proprio − AE: +0.00 [+0.00, +0.00]†: not shown to differ; the observed difference is 0, so no "
+          "number of rollouts would decide it.") in flat
+  assert flat.index("**Claim 2") < flat.index("**Options beyond the paper**")
+  table = claims.options_table(a, "push", encoders)
+  assert len(table.splitlines()) == 4 and "| SAVi+proprio − SAVi |" in table
+  assert claims.options_table(a, "pick", encoders) == ""
+  plain = claims.answer(loaded, ["push"], ["ae", "savi"], ["train", "L1"])
+  assert "Options beyond" not in claims.verdict(plain, ["push"], ["ae", "savi"])   # none without such a column
+
+
 def test_the_published_report_prints_intervals_comparisons_robustness_the_figure_and_the_verdict(tmp_path):
   root = tmp_path / "results"
   for (task, encoder), run in _loaded({("push", "savi"): dict(train=0.8, L1=0.8, L2=0.5),

@@ -17,7 +17,9 @@ them, per task and global encoder, by which side of 0 the interval lies:
   training seeds would decide it if the difference held (stats.needed), or why no number would.
 
 A task supports a claim when every global encoder present there gives "supports", contradicts it when any gives
-"contradicts", and cannot decide otherwise. Every word of the verdict is computed from the cells.
+"contradicts", and cannot decide otherwise. A column with an option beyond the paper ("savi+proprio") is read the
+same way against its plain encoder, paired on the same start states: the option helps, hurts or is not shown to
+differ (`options_table`, the verdict's last paragraph). Every word of the verdict is computed from the cells.
 """
 import dataclasses
 import math
@@ -25,6 +27,8 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from roboshape.encoders import columns
+from roboshape.errors import UserError
 from roboshape.eval import paper
 from roboshape.eval import stats
 from roboshape.eval import tables
@@ -35,6 +39,7 @@ CONTROLS = ("objects",)            # compared with SAVi in the tables, not part 
 STATE = "state"                    # the privileged state: the control that should succeed, named in claim 1
 LEVELS_MEAN = "mean"               # the column of a statistic averaged over the levels (or the shift levels)
 OUTCOMES = {1: "supports", -1: "contradicts", 0: "cannot decide"}
+OPTION_OUTCOMES = {1: "helps", -1: "hurts", 0: "not shown to differ"}
 ONE_SEED_MARK = "†"
 
 
@@ -47,6 +52,8 @@ class Answer:
     pairs: {(task, other, level or LEVELS_MEAN): Estimate of SAVi's success minus `other`'s}.
     robustness: {(task, encoder, shift level or LEVELS_MEAN): Estimate}.
     gaps: {(task, other): Estimate of SAVi's robustness (LEVELS_MEAN) minus `other`'s}.
+    options: {(task, column, level or LEVELS_MEAN): Estimate of a column with options beyond the paper's success
+      minus its plain encoder's (`with_options`)}.
     cells: {(task, encoder): stats.Cell}.
     levels: the report's levels that some cell has.
     task_shifts: {task: the shift levels every cell of the task has}, which robustness averages over.
@@ -55,6 +62,7 @@ class Answer:
   pairs: Dict[Tuple[str, str, str], stats.Estimate]
   robustness: Dict[Tuple[str, str, str], stats.Estimate]
   gaps: Dict[Tuple[str, str], stats.Estimate]
+  options: Dict[Tuple[str, str, str], stats.Estimate]
   cells: Dict[Tuple[str, str], stats.Cell]
   levels: Tuple[str, ...]
   task_shifts: Dict[str, Tuple[str, ...]]
@@ -75,7 +83,7 @@ def answer(loaded: Dict[Tuple[str, str], Dict], tasks: Sequence[str], encoders: 
   cells = {(t, e): stats.cell(loaded[(t, e)]["rollouts"]) for t in tasks for e in encoders
            if "rollouts" in loaded.get((t, e), {}) and loaded[(t, e)]["rollouts"]}
   levels = [l for l in levels if any(l in c.levels for c in cells.values())]
-  out = Answer({}, {}, {}, {}, cells, tuple(levels), {})
+  out = Answer({}, {}, {}, {}, {}, cells, tuple(levels), {})
   for task in tasks:
     out.task_shifts[task] = tuple(l for l in out.shifts if all(l in c.levels for (t, _), c in cells.items()
                                                                 if t == task))
@@ -102,6 +110,29 @@ def answer(loaded: Dict[Tuple[str, str], Dict], tasks: Sequence[str], encoders: 
         out.pairs[(task, other, LEVELS_MEAN)] = stats.difference(savi, c, common, draws, seed)
       if other in GLOBAL and out.task_shifts[task] and all(stats.TRAIN in x.levels for x in (savi, c)):
         out.gaps[(task, other)] = stats.robustness_difference(savi, c, out.task_shifts[task], draws, seed)
+    for column, plain in with_options(encoders):
+      c, base = cells.get((task, column)), cells.get((task, plain))
+      if c is None or base is None:
+        continue
+      common = [l for l in levels if l in c.levels and l in base.levels]
+      for level in common:
+        out.options[(task, column, level)] = stats.difference(c, base, [level], draws, seed)
+      if common:
+        out.options[(task, column, LEVELS_MEAN)] = stats.difference(c, base, common, draws, seed)
+  return out
+
+
+def with_options(encoders: Sequence[str]) -> List[Tuple[str, str]]:
+  """(column, its plain encoder) for each column with options beyond the paper ("savi+proprio", "savi";
+  roboshape/encoders/columns.py) whose plain encoder is a column too: what the option changes is read against it."""
+  out = []
+  for column in encoders:
+    try:
+      plain, fields = columns.parse(column)
+    except UserError:
+      continue
+    if fields and plain in encoders:
+      out.append((column, plain))
   return out
 
 
@@ -141,6 +172,18 @@ def pairs_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
   rows = [[f"SAVi − {tables.encoder_name(o)}"] + [interval(a.pairs[(task, o, l)], signed=True)
                                                   if (task, o, l) in a.pairs else "-" for l in columns]
           for o in compared(encoders) if (task, o, LEVELS_MEAN) in a.pairs]
+  if not rows:
+    return ""
+  return _table([""] + [tables.level_name(l) for l in a.levels] + ["mean over levels"], rows)
+
+
+def options_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
+  """Each column with options' success minus its plain encoder's, per level and averaged over the levels ("" when
+  none)."""
+  columns_ = list(a.levels) + [LEVELS_MEAN]
+  rows = [[f"{tables.encoder_name(c)} − {tables.encoder_name(p)}"] + [
+      interval(a.options[(task, c, l)], signed=True) if (task, c, l) in a.options else "-" for l in columns_]
+          for c, p in with_options(encoders) if (task, c, LEVELS_MEAN) in a.options]
   if not rows:
     return ""
   return _table([""] + [tables.level_name(l) for l in a.levels] + ["mean over levels"], rows)
@@ -294,8 +337,33 @@ def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int
   return " ".join(text)
 
 
+def _options(a: Answer, tasks: Sequence[str], encoders: Sequence[str]) -> str:
+  """The paragraph on the options beyond the paper, "" without a column with options beside its plain one: per task,
+  each such column's success averaged over the levels minus its plain encoder's, read by where its interval lies."""
+  lines = []
+  for task in tasks:
+    for column, plain in with_options(encoders):
+      if (task, column, LEVELS_MEAN) not in a.options:
+        continue
+      e = a.options[(task, column, LEVELS_MEAN)]
+      text = (f"{task}, {tables.encoder_name(column)} − {tables.encoder_name(plain)}: {interval(e, signed=True)}: "
+              f"{OPTION_OUTCOMES[e.side]}")
+      if e.side == 0:
+        if _never_succeeds(a.cells[(task, column)]) and _never_succeeds(a.cells[(task, plain)]):
+          text += "; neither succeeds in any rollout, so no number of rollouts separates them"
+        else:
+          text += _needed(e)
+      lines.append(text + ".")
+  if not lines:
+    return ""
+  return " ".join(["**Options beyond the paper** (not a claim of the paper: what each option changes for its "
+                   "encoder). Judged per task on the column's success averaged over the levels minus its plain "
+                   "encoder's, by where its 95% interval lies:"] + lines)
+
+
 def verdict(a: Answer, tasks: Sequence[str], encoders: Sequence[str]) -> str:
-  """The generated verdict: a paragraph per claim (Markdown)."""
+  """The generated verdict: a paragraph per claim, then one on the options beyond the paper where the table has
+  them (Markdown)."""
   claim1 = _claim(a, tasks, encoders, 1, "an object-centric encoder (SAVi) succeeds more often than global ones.",
                   "Judged per task on SAVi's success averaged over the levels minus the other's, by where its 95% "
                   "interval lies:", _claim1, lambda t, o: (t, o, LEVELS_MEAN) in a.pairs)
@@ -303,7 +371,8 @@ def verdict(a: Answer, tasks: Sequence[str], encoders: Sequence[str]) -> str:
                   "robustness (its success averaged over the shift levels divided by its success at the train "
                   "level) minus the other's, by where its 95% interval lies:", _claim2,
                   lambda t, o: (t, o) in a.gaps)
-  return claim1 + "\n\n" + claim2 + "\n"
+  options = _options(a, tasks, encoders)
+  return claim1 + "\n\n" + claim2 + "\n" + ("\n" + options + "\n" if options else "")
 
 
 METHOD = ("Intervals: 95% percentile intervals of a hierarchical bootstrap (roboshape/eval/stats.py, "

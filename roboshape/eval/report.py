@@ -14,9 +14,10 @@ Outputs in <workdir>/report/: report.md, table_<task>.md and table_<task>.tex pe
 layout), success_by_level.png (success per level and encoder, a panel per task, with 95% intervals as error bars),
 overall.png (mean success per encoder and level across tasks, the paper's overall figure), summary.json (the
 summary rows and every interval) and results.csv (every rollout of every run). report.md holds, in order: the
-verdict on the paper's two claims (roboshape/eval/claims.py), then per task the table, each cell's success with its
-95% interval (roboshape/eval/stats.py), SAVi's success minus each other encoder's, and each encoder's robustness to
-the shift levels; then the core-hours of each cell and row (roboshape/eval/compute.py); then the figures.
+verdict on the paper's two claims (roboshape/eval/claims.py) and on the options beyond the paper, then per task the
+table, each cell's success with its 95% interval (roboshape/eval/stats.py), SAVi's success minus each other
+encoder's, each column with options' success minus its plain encoder's, and each encoder's robustness to the shift
+levels; then the core-hours of each cell and row (roboshape/eval/compute.py); then the figures.
 """
 import csv
 import json
@@ -221,6 +222,8 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
     if any(t == task for t, _ in answer.cells):
       md += [f"### {task}: success with its 95% interval", "", claims.success_table(answer, task, encoders)]
     for title, table in ((f"### {task}: SAVi's success minus the others'", claims.pairs_table(answer, task, encoders)),
+                         (f"### {task}: the options beyond the paper (a column's success minus its plain encoder's)",
+                          claims.options_table(answer, task, encoders)),
                          (f"### {task}: robustness (success at a shift level / at the train level)",
                           claims.robustness_table(answer, task, encoders))):
       if table:
