@@ -166,27 +166,28 @@ def success_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
                                            for e in encoders] for l in a.levels])
 
 
+def _differences(a: Answer, rows: Sequence[Tuple[str, Dict[str, stats.Estimate]]]) -> str:
+  """A table of differences, one row per (label, {level or LEVELS_MEAN: Estimate}) that has LEVELS_MEAN, per level
+  and averaged over the levels ("" when none)."""
+  body = [[label] + [interval(by_level[l], signed=True) if l in by_level else "-" for l in list(a.levels) +
+                     [LEVELS_MEAN]] for label, by_level in rows if LEVELS_MEAN in by_level]
+  if not body:
+    return ""
+  return _table([""] + [tables.level_name(l) for l in a.levels] + ["mean over levels"], body)
+
+
 def pairs_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
   """SAVi's success minus each compared encoder's, per level and averaged over the levels ("" when none)."""
-  columns = list(a.levels) + [LEVELS_MEAN]
-  rows = [[f"SAVi − {tables.encoder_name(o)}"] + [interval(a.pairs[(task, o, l)], signed=True)
-                                                  if (task, o, l) in a.pairs else "-" for l in columns]
-          for o in compared(encoders) if (task, o, LEVELS_MEAN) in a.pairs]
-  if not rows:
-    return ""
-  return _table([""] + [tables.level_name(l) for l in a.levels] + ["mean over levels"], rows)
+  return _differences(a, [(f"SAVi − {tables.encoder_name(o)}", {l: e for (t, x, l), e in a.pairs.items()
+                                                                if (t, x) == (task, o)}) for o in compared(encoders)])
 
 
 def options_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
   """Each column with options' success minus its plain encoder's, per level and averaged over the levels ("" when
   none)."""
-  columns_ = list(a.levels) + [LEVELS_MEAN]
-  rows = [[f"{tables.encoder_name(c)} − {tables.encoder_name(p)}"] + [
-      interval(a.options[(task, c, l)], signed=True) if (task, c, l) in a.options else "-" for l in columns_]
-          for c, p in with_options(encoders) if (task, c, LEVELS_MEAN) in a.options]
-  if not rows:
-    return ""
-  return _table([""] + [tables.level_name(l) for l in a.levels] + ["mean over levels"], rows)
+  return _differences(a, [(f"{tables.encoder_name(c)} − {tables.encoder_name(p)}",
+                           {l: e for (t, x, l), e in a.options.items() if (t, x) == (task, c)})
+                          for c, p in with_options(encoders)])
 
 
 def robustness_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
@@ -247,12 +248,17 @@ def _claim1(a: Answer, task: str, other: str) -> Tuple[int, str]:
   e, name = a.pairs[(task, other, LEVELS_MEAN)], tables.encoder_name(other)
   means = f"SAVi {_level_mean(a, task, OBJECT_CENTRIC, other):.2f}, {name} {_level_mean(a, task, other, other):.2f}"
   text = f"{task}, SAVi − {name}: {interval(e, signed=True)} ({means} over the levels): {OUTCOMES[e.side]}"
-  if e.side == 0:
-    if _never_succeeds(a.cells[(task, OBJECT_CENTRIC)]) and _never_succeeds(a.cells[(task, other)]):
-      text += "; neither succeeds in any rollout, so no number of rollouts separates them"
-    else:
-      text += _needed(e)
-  return e.side, text
+  return e.side, text + _undecided(a, e, task, OBJECT_CENTRIC, other)
+
+
+def _undecided(a: Answer, e: stats.Estimate, task: str, first: str, second: str) -> str:
+  """What would decide `e`, the difference between two cells of `task`, where its interval holds 0 ("" where it does
+  not): no number of rollouts where neither cell ever succeeds, else `_needed`."""
+  if e.side != 0:
+    return ""
+  if _never_succeeds(a.cells[(task, first)]) and _never_succeeds(a.cells[(task, second)]):
+    return "; neither succeeds in any rollout, so no number of rollouts separates them"
+  return _needed(e)
 
 
 def _claim2(a: Answer, task: str, other: str) -> Tuple[int, str]:
@@ -346,14 +352,8 @@ def _options(a: Answer, tasks: Sequence[str], encoders: Sequence[str]) -> str:
       if (task, column, LEVELS_MEAN) not in a.options:
         continue
       e = a.options[(task, column, LEVELS_MEAN)]
-      text = (f"{task}, {tables.encoder_name(column)} − {tables.encoder_name(plain)}: {interval(e, signed=True)}: "
-              f"{OPTION_OUTCOMES[e.side]}")
-      if e.side == 0:
-        if _never_succeeds(a.cells[(task, column)]) and _never_succeeds(a.cells[(task, plain)]):
-          text += "; neither succeeds in any rollout, so no number of rollouts separates them"
-        else:
-          text += _needed(e)
-      lines.append(text + ".")
+      lines.append(f"{task}, {tables.encoder_name(column)} − {tables.encoder_name(plain)}: "
+                   f"{interval(e, signed=True)}: {OPTION_OUTCOMES[e.side]}{_undecided(a, e, task, column, plain)}.")
   if not lines:
     return ""
   return " ".join(["**Options beyond the paper** (not a claim of the paper: what each option changes for its "
