@@ -103,22 +103,23 @@ def answer(loaded: Dict[Tuple[str, str], Dict], tasks: Sequence[str], encoders: 
       c = cells.get((task, other))
       if savi is None or c is None:
         continue
-      common = [l for l in levels if l in savi.levels and l in c.levels]
-      for level in common:
-        out.pairs[(task, other, level)] = stats.difference(savi, c, [level], draws, seed)
-      if common:
-        out.pairs[(task, other, LEVELS_MEAN)] = stats.difference(savi, c, common, draws, seed)
+      out.pairs.update({(task, other, l): e for l, e in _by_level(savi, c, levels, draws, seed).items()})
       if other in GLOBAL and out.task_shifts[task] and all(stats.TRAIN in x.levels for x in (savi, c)):
         out.gaps[(task, other)] = stats.robustness_difference(savi, c, out.task_shifts[task], draws, seed)
     for column, plain in with_options(encoders):
       c, base = cells.get((task, column)), cells.get((task, plain))
       if c is None or base is None:
         continue
-      common = [l for l in levels if l in c.levels and l in base.levels]
-      for level in common:
-        out.options[(task, column, level)] = stats.difference(c, base, [level], draws, seed)
-      if common:
-        out.options[(task, column, LEVELS_MEAN)] = stats.difference(c, base, common, draws, seed)
+      out.options.update({(task, column, l): e for l, e in _by_level(c, base, levels, draws, seed).items()})
+  return out
+
+
+def _by_level(a: stats.Cell, b: stats.Cell, levels: Sequence[str], draws: int, seed: int) -> Dict[str, stats.Estimate]:
+  """{level: a's success minus b's} at each of `levels` both cells have, and at LEVELS_MEAN averaged over them."""
+  common = [l for l in levels if l in a.levels and l in b.levels]
+  out = {level: stats.difference(a, b, [level], draws, seed) for level in common}
+  if common:
+    out[LEVELS_MEAN] = stats.difference(a, b, common, draws, seed)
   return out
 
 
