@@ -2,9 +2,10 @@
 
 Command:  python launch.py --config=configs/pick_objects.py:small --workdir=runs/pick_objects
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
-Runtime:  one to two hours per training seed on one core at :small (mostly behaviour cloning on a token per object),
-          plus the task's collection (2000 demos: about 45 minutes on one core, shared by its runs); each cell's stage
-          times: results/small/README.md.
+Runtime:  about three hours on one core at :small (three training seeds of about 50 minutes each, mostly behaviour
+          cloning on a token per object, and the evaluation, about 40 minutes), plus the task's collection (2000 demos:
+          about half an hour of core time, one simulator worker per core, shared by its runs); measured on 2-core CPUs
+          (results/small/README.md "Machines and speed"), each stage's time in results/small/pick_objects/stages.json.
 Results:  results/small/pick_objects/README.md
 Reads observation/image and observation/segmentation (every dataset stores them), and observation/depth too where
 env.depth is set (the :small). No pretraining. Token layout: roboshape/encoders/objects.py.
