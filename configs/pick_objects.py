@@ -3,8 +3,8 @@
 Command:  python launch.py --config=configs/pick_objects.py:small --workdir=runs/pick_objects
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
 Runtime:  about three hours on one core at :small (three training seeds of about 50 minutes each, mostly behaviour
-          cloning on a token per object, and the evaluation, about 40 minutes), plus the task's collection (2000 demos:
-          about half an hour of core time, one simulator worker per core, shared by its runs); measured on 2-core CPUs
+          cloning on a token per object, and the evaluation, about 40 minutes), plus the task's collection (2000 demos,
+          shared by its runs: results/small/report/report.md "Compute", column collect); measured on 2-core CPUs
           (results/small/README.md "Machines and speed"), each stage's time in results/small/pick_objects/stages.json.
 Results:  results/small/pick_objects/README.md
 Reads observation/image and observation/segmentation (every dataset stores them), and observation/depth too where

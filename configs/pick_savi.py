@@ -4,8 +4,8 @@ Command:  python launch.py --config=configs/pick_savi.py:small --workdir=runs/pi
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
 Runtime:  about four hours on one core at :small (SAVi's three pretraining seeds about an hour and a quarter, the three
           behaviour-cloning seeds about two hours, the evaluation about 35 minutes), plus the task's collection (2000
-          demos: about half an hour of core time, one simulator worker per core, shared by its runs); measured on 2-core
-          CPUs (results/small/README.md "Machines and speed"), each stage's time in results/small/pick_savi/stages.json.
+          demos, shared by its runs: results/small/report/report.md "Compute", column collect); measured on 2-core CPUs
+          (results/small/README.md "Machines and speed"), each stage's time in results/small/pick_savi/stages.json.
 Results:  results/small/pick_savi/README.md
 """
 from configs import common

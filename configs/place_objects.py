@@ -4,8 +4,8 @@ Command:  python launch.py --config=configs/place_objects.py:small --workdir=run
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
 Runtime:  about nine hours on one core at :small (three training seeds of place's 15000 steps, about two and a half
           hours each, mostly behaviour cloning on a token per object, and the evaluation, about 50 minutes), plus the
-          task's collection (2000 demos: 50 to 105 minutes of core time, one simulator worker per core, shared by its
-          runs); measured on 2-core CPUs (results/small/README.md "Machines and speed"), each stage's time in
+          task's collection (2000 demos, shared by its runs: results/small/report/report.md "Compute", column collect);
+          measured on 2-core CPUs (results/small/README.md "Machines and speed"), each stage's time in
           results/small/place_objects/stages.json.
 Results:  results/small/place_objects/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.

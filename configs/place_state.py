@@ -3,8 +3,8 @@
 Command:  python launch.py --config=configs/place_state.py:small --workdir=runs/place_state
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
 Runtime:  about an hour and a half on one core at :small (three training seeds of place's 15000 steps, about 25 minutes
-          each, and the evaluation, about 10 minutes), plus the task's collection (2000 demos: 50 to 105 minutes of core
-          time, one simulator worker per core, shared by its runs); measured on 2-core CPUs (results/small/README.md
+          each, and the evaluation, about 10 minutes), plus the task's collection (2000 demos, shared by its runs:
+          results/small/report/report.md "Compute", column collect); measured on 2-core CPUs (results/small/README.md
           "Machines and speed"), each stage's time in results/small/place_state/stages.json.
 Results:  results/small/place_state/README.md
 Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
