@@ -3,10 +3,9 @@
 
 Command:  python launch.py --config=configs/reproduce.py[:tiny|small|paper] --workdir=runs/reproduce_<variant>
           (`make demo` runs the :tiny variant into runs/demo)
-Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about 90 core-hours, about 45 hours on a 2-core CPU's
-          two lanes (estimated: the former table's stage times per cell, results/small/README.md, scaled to three
-          training seeds a cell, three SAVi and AE pretraining seeds, place's 15000 behaviour-cloning steps and 2000
-          demos a task; per row push ~22, pick ~21, place ~46 core-hours, the table in README.md); :paper GPU-days
+Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about 70 core-hours, at least 36 hours on a 2-core CPU's
+          two lanes (measured from the published cells' stage logs, results/small/report/report.md "Compute": 61.3
+          core-hours for every cell but place x SAVi+proprio, which adds about 10); :paper GPU-days
           (benchmarks/gpu_scaleup.py estimates them).
 Results:  results/small/README.md (one folder per cell, results/small/<task>_<column>/README.md)
 

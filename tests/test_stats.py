@@ -125,6 +125,20 @@ def test_needed_projects_the_rollouts_that_would_decide_an_undecided_difference(
   assert projected(0.8) == stats.Needed(starts=None, seeds=5, factor=pytest.approx(1.44), lower_bound=False)
 
 
+def test_the_verdict_gives_no_projection_beyond_a_hundredfold():
+  # a difference of 0.01 with half-width 0.12: q = (0.01 / 0.12)^2, so 144 times both; the verdict says only that
+  # it is beyond 100 times, and the projection below the bound is still printed in full
+  def said(value, seeds):
+    var = (0.12 / 1.96) ** 2
+    e = stats.Estimate(value=value, low=value - 0.12, high=value + 0.12, undefined=0.0, var=var,
+                       var_seeds=0.5 * var, var_starts=0.5 * var, seeds=seeds, starts=60)
+    return claims._needed(e)  # pylint: disable=protected-access
+  assert said(0.01, (3, 3)) == ("; if the difference held, it would take more than 100 times both the rollouts and "
+                                "the training seeds to decide it")
+  assert said(-0.01, (1, 3)) == "; if the difference held, it would take more than 100 times the rollouts to decide it"
+  assert said(0.1, (3, 3)).endswith("or 1.4 times both the rollouts and the training seeds")
+
+
 def _loaded(rates_by_cell, starts=40):
   """{(task, encoder): run} with one training seed, start k succeeding at a level when k < rate * starts."""
   return {(task, encoder): dict(rollouts=_rollouts(task, encoder, {(None, level): range(round(r * starts))

@@ -41,6 +41,7 @@ LEVELS_MEAN = "mean"               # the column of a statistic averaged over the
 OUTCOMES = {1: "supports", -1: "contradicts", 0: "cannot decide"}
 OPTION_OUTCOMES = {1: "helps", -1: "hurts", 0: "not shown to differ"}
 ONE_SEED_MARK = "†"
+FAR = 100                          # beyond this factor the verdict gives no projection, only that it is beyond
 
 
 @dataclasses.dataclass
@@ -214,6 +215,11 @@ def _needed(e: stats.Estimate) -> str:
   n = stats.needed(e)
   if n is None:
     return ""
+  if n.factor > FAR:
+    # a difference a small fraction of its interval's half-width: the projection to many thousands of rollouts
+    # rests on the observed value alone, which one rollout more or less would move by as much again
+    return (f"; if the difference held, it would take more than {FAR} times "
+            + ("the rollouts" if n.lower_bound else "both the rollouts and the training seeds") + " to decide it")
   ways = []
   if n.starts is not None:
     ways.append(f"about {n.starts} rollouts per level per training seed (now {e.starts}"
