@@ -14,7 +14,8 @@ them, per task and global encoder, by which side of 0 the interval lies:
   state's: what the behaviour cloning reaches at all); claim 2: SAVi's
   robustness over the shift levels (averaged) minus the other's.
   above 0: supports; below 0: contradicts; holding 0 or undefined: cannot decide, with how many more rollouts or
-  training seeds would decide it if the difference held (stats.needed), or why no number would.
+  training seeds would decide it if the difference held (stats.needed; beyond FAR times as many, only that
+  bound), or why no number would.
 
 A task supports a claim when every global encoder present there gives "supports", contradicts it when any gives
 "contradicts", and cannot decide otherwise. A column with an option beyond the paper ("savi+proprio") is read the
@@ -216,8 +217,8 @@ def _needed(e: stats.Estimate) -> str:
   if n is None:
     return ""
   if n.factor > FAR:
-    # a difference a small fraction of its interval's half-width: the projection to many thousands of rollouts
-    # rests on the observed value alone, which one rollout more or less would move by as much again
+    # a difference under a tenth of its interval's half-width: a projection to a hundredfold rollouts and more
+    # rests on an observed value that a few rollouts more or less would change, so only the bound is said
     return (f"; if the difference held, it would take more than {FAR} times "
             + ("the rollouts" if n.lower_bound else "both the rollouts and the training seeds") + " to decide it")
   ways = []
