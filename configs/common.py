@@ -218,6 +218,7 @@ def state_config(variant: str) -> ml_collections.ConfigDict:
   return ml_collections.ConfigDict(dict(
       # state fields the token leaves out (e.g. ("cube_quat",)): an ablation of what a field is worth
       withhold=(),
+      relative=True,            # False: absolute positions only (no cube or goal relative to the hand)
   ))
 
 

@@ -17,6 +17,13 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
   reached                         per milestone of the task, how many of those rollouts reached it
   val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
   fg_ari                          the selected SAVi's final validation FG-ARI, where the run pretrained one
+  closest_cm, first_move          medians over those rollouts of the tool centre point's closest distance to the
+                                  cube and of the first actions' length (roboshape/eval/closed_loop.py); empty for
+                                  a log that predates them
+  first_move_offline, first_move_expert, mse_approach, mse_grasp, mse_lift, mse_first
+                                  the offline figures of roboshape/eval/offline.py (eval/offline.json, where the
+                                  probe's workdir has one): first moves predicted on the validation demos and the
+                                  expert's, and the action MSE per phase
   <stage>_s, cores, core_hours    each stage's wall seconds (stages.json; collect excluded: the dataset is shared
                                   by a task's probes), the most cores a stage held, and the stages' core-seconds
                                   (rundir.logged_time: wall time x the cores held; one core where the log predates
@@ -37,6 +44,8 @@ import os
 import sys
 from typing import Dict, List, Optional
 
+import numpy as np
+
 from roboshape import errors
 from roboshape import fileio
 from roboshape import rundir
@@ -53,11 +62,14 @@ IGNORED = ("data.dir", "pretrain.from_workdir", "sim.num_workers", "eval.levels"
 # evaluation's milestone table and the policy's validation curve.
 KEPT = ("config.json", "stages.json", "eval/results.csv", "eval/milestones.md", "policy/val_metrics.json",
         "policy/val_metrics.png", "policy/seed_0/val_metrics.json", "savi/selected.json", "savi/val_metrics.json",
-        "savi/val_metrics.png")
+        "savi/val_metrics.png", "eval/offline.json")
 TIMED = ("pretrain", "cache", "train_policy", "evaluate")
+# Where success is lost (closed loop, then offline): a second table, of the rows that hold them.
+DIAGNOSED = ("closest_cm", "first_move", "first_move_offline", "first_move_expert", "mse_approach", "mse_grasp",
+             "mse_lift", "mse_first")
 COLUMNS = (("probe", "task", "encoder", "variant", "changed", "rollouts", "successes", "success", "reached",
             "val_mse_best", "best_step", "val_mse_last", "fg_ari") + tuple(f"{s}_s" for s in TIMED)
-           + ("cores", "core_hours"))
+           + ("cores", "core_hours") + DIAGNOSED)
 
 
 def _flatten(tree, prefix: str = "") -> Dict:
@@ -134,6 +146,26 @@ def _fg_ari(workdir: str) -> str:
   return ""
 
 
+def _median(rollouts: List[Dict], field: str, digits: int) -> str:
+  values = [float(r[field]) for r in rollouts if r.get(field) not in (None, "")]
+  return f"{np.median(values):.{digits}f}" if values else ""
+
+
+def _diagnosis(workdir: str, rollouts: List[Dict]) -> Dict:
+  """The DIAGNOSED columns of a probe: closed-loop medians, and the offline figures where eval/offline.json is."""
+  row = dict.fromkeys(DIAGNOSED, "")
+  row.update(closest_cm=_median(rollouts, "closest_cube_cm", 1), first_move=_median(rollouts, "first_move", 2))
+  path = os.path.join(workdir, "eval", "offline.json")
+  if os.path.exists(path):
+    with open(path) as f:
+      offline = json.load(f)
+    row.update(first_move_offline=f"{offline['first_move']['policy']:.2f}",
+               first_move_expert=f"{offline['first_move']['expert']:.2f}")
+    for phase, figures in offline["phases"].items():
+      row[f"mse_{phase}"] = "" if figures["action_mse"] is None else f"{figures['action_mse']:.4f}"
+  return row
+
+
 def read_baseline(study: str) -> Dict:
   """<study>/baseline.json (see the module docstring), or {} where the study has none."""
   path = os.path.join(study, BASELINE_NAME)
@@ -167,6 +199,7 @@ def probe_row(workdir: str, name: str, baseline: Optional[Dict] = None) -> Dict:
              val_mse_last=f"{metrics[-1]['action_mse']:.4f}" if metrics else "", fg_ari=_fg_ari(workdir),
              cores=cores, core_hours=f"{core_seconds / 3600:.2f}")
   row.update({f"{s}_s": "" if v is None else f"{v:.0f}" for s, v in seconds.items()})
+  row.update(_diagnosis(workdir, rollouts))
   return row
 
 
@@ -196,6 +229,20 @@ def table(rows: List[Dict]) -> str:
                  f"{r['success']} ({r['successes']}/{r['rollouts']}) | {r['reached']} | "
                  f"{r['val_mse_best']} ({r['best_step']}) / {r['val_mse_last']} | {r['fg_ari'] or '-'} | "
                  f"{r['train_policy_s']} + {r['evaluate_s']} | {r['core_hours']} |")
+  diagnosed = [r for r in rows if any(r.get(k) for k in DIAGNOSED)]
+  if diagnosed:
+    lines += ["", "Where success is lost, for the probes that measured it: the tool centre point's closest distance "
+              "to the cube (median over the train-level rollouts); the length of the first actions' position part "
+              "(median; 1 is the controller's largest step) in closed loop, predicted offline on the validation "
+              "demos, and the expert's; the offline action MSE on the validation demos by phase "
+              "(roboshape/eval/offline.py).", "",
+              "| probe | train success | closest to cube (cm) | first moves: closed loop / offline / expert | "
+              "offline MSE approach / grasp / lift / first steps |", "| --- | --- | --- | --- | --- |"]
+    for r in diagnosed:
+      v = {k: r.get(k) or "-" for k in DIAGNOSED}
+      lines.append(f"| {r['probe']} | {r['success']} | {v['closest_cm']} | {v['first_move']} / "
+                   f"{v['first_move_offline']} / {v['first_move_expert']} | {v['mse_approach']} / "
+                   f"{v['mse_grasp']} / {v['mse_lift']} / {v['mse_first']} |")
   return "\n".join(lines)
 
 

@@ -253,3 +253,42 @@ def test_a_new_encoder_runs_the_tiny_pipeline(toy, synthetic_dataset, tmp_path):
   videos = os.listdir(os.path.join(workdir, "eval", "videos"))
   assert any(v.endswith(".mp4") for v in videos) and not any("_slots" in v for v in videos)
   assert os.path.isfile(os.path.join(workdir, "report", "report.md"))
+
+
+def test_the_absolute_state_token_zeroes_the_relative_entries_alone():
+  config = common.get_config("pick", "state", "tiny")
+  full = encoders.get("state").build(config, "")
+  config.state.relative = False
+  config_check.check(config)
+  absolute = encoders.get("state").build(config, "")
+  assert absolute.identity != full.identity and absolute.token_dim == full.token_dim
+  states = np.random.default_rng(3).normal(size=(2, 3, state_lib.DIM)).astype(np.float32)
+  a = np.asarray(full.encode_batch({"state": states}))[:, :, 0]
+  b = np.asarray(absolute.encode_batch({"state": states}))[:, :, 0]
+  np.testing.assert_array_equal(b[..., :state_lib.DIM], a[..., :state_lib.DIM])
+  assert (b[..., state_lib.DIM:] == 0).all() and (a[..., state_lib.DIM:] != 0).all()
+
+
+def test_pose_tokens_are_the_objects_exact_positions_in_decimetres_and_absent_distractors_are_zero():
+  from roboshape.encoders import poses  # pylint: disable=import-outside-toplevel
+  from roboshape.envs import palettes  # pylint: disable=import-outside-toplevel
+  config = common.get_config("pick", "poses", "tiny")
+  enc = encoders.build_encoder(config, "")
+  k = int(config.env.max_distractors)
+  assert (enc.num_tokens, enc.token_dim, enc.inputs) == (3 + k, poses.DIM, ("state",))
+  cuts = state_lib.slices()
+  tcp, cube, goal = (0.1, -0.2, 0.3), (0.05, 0.0, 0.02), (-0.1, 0.1, 0.0)
+  state = np.zeros((1, 1, state_lib.DIM), np.float32)
+  state[..., cuts["tcp_pos"]], state[..., cuts["cube_pos"]], state[..., cuts["goal_pos"]] = tcp, cube, goal
+  state[..., cuts["gripper"]] = 0.08
+  rows = np.zeros((state_lib.MAX_DISTRACTORS, 5), np.float32)
+  rows[0] = (0.2, 0.2, 0.03, 0.025, 1.0)                   # one distractor present, the rest padding
+  state[..., cuts["distractors"]] = rows.reshape(-1)
+  tokens = np.asarray(enc.encode_batch({"state": state}))[0, 0]
+  colour = lambda rgb: np.asarray(rgb, np.float32) / 255
+  np.testing.assert_allclose(tokens[0], np.r_[1, 10 * np.array(tcp), 0, 0.8, colour(poses.HAND_COLOUR)], rtol=1e-6)
+  np.testing.assert_allclose(tokens[1], np.r_[1, 10 * np.array(cube), 0.2, 0, colour(palettes.CUBE_COLOR)],
+                             rtol=1e-6)
+  np.testing.assert_allclose(tokens[2], np.r_[1, 10 * np.array(goal), 0, 0, colour(palettes.GOAL_COLOR)], rtol=1e-6)
+  np.testing.assert_allclose(tokens[3], np.r_[1, 2, 2, 0.3, 0.25, 0, colour(poses.DISTRACTOR_COLOUR)], rtol=1e-6)
+  assert not tokens[4:].any()                               # padding: all zero, masked out by the trunk

@@ -110,7 +110,7 @@ class Kind:
 _REGISTRY: Dict[str, Kind] = {}
 # The modules that register the built-in encoders, imported on first use.
 _MODULES = ("roboshape.encoders.savi", "roboshape.encoders.baselines", "roboshape.encoders.state",
-            "roboshape.encoders.objects", "roboshape.encoders.ae")
+            "roboshape.encoders.objects", "roboshape.encoders.poses", "roboshape.encoders.ae")
 
 
 def register(kind: Kind) -> Kind:

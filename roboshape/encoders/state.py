@@ -12,6 +12,8 @@ dataset collected since the field exists).
 `state.withhold` names FIELDS of the state vector that the token leaves out (their entries zero, and every RELATIVE
 entry computed from one of them zero): an ablation that says what a field is worth to the policy, e.g. the cube's
 orientation, of which the `objects` token holds nothing (its fields: roboshape/encoders/objects.py).
+`state.relative` False zeroes every RELATIVE entry: the state with absolute positions only, the rung of the pick
+ladder between the state token and object tokens (results/small/recipe) that says what the relative entries are worth.
 """
 import numpy as np
 
@@ -40,11 +42,13 @@ def relative_scale(withhold=()) -> np.ndarray:
   return np.array([0.0 if (a in withhold or b in withhold) else 1.0 for a, b in RELATIVE], np.float32)
 
 
-def _layout_hash(withhold=()) -> str:
+def _layout_hash(withhold=(), relative: bool = True) -> str:
   import hashlib  # pylint: disable=import-outside-toplevel
   text = state_lib.describe() + str(token_scale().tolist()) + str(RELATIVE) + str(POSITION_STEP)
   if withhold:     # the full token's hash is the one every cache made before the option existed carries
     text += f" withhold {sorted(withhold)}"
+  if not relative:
+    text += " absolute only"
   return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
@@ -68,6 +72,11 @@ def withheld(config) -> tuple:
   return () if config is None else tuple(config.get("state", {}).get("withhold", ()))
 
 
+def relative_on(config) -> bool:
+  """config.state.relative (True without a config, or for one written before the option existed)."""
+  return True if config is None else bool(config.get("state", {}).get("relative", True))
+
+
 def check(config) -> None:
   """Raises UserError unless state.withhold is a tuple of distinct FIELDS names."""
   names = tuple(name for name, _, _ in state_lib.FIELDS)
@@ -81,10 +90,11 @@ def check(config) -> None:
 def _build(config, workdir: str):
   del workdir
   from roboshape.models.encoder import FrozenEncoder  # pylint: disable=import-outside-toplevel
-  withhold = withheld(config)
-  return FrozenEncoder(name="state", params={"scale": token_scale(withhold), "relative": relative_scale(withhold)},
+  withhold, relative = withheld(config), relative_on(config)
+  return FrozenEncoder(name="state", params={"scale": token_scale(withhold),
+                                             "relative": relative_scale(withhold) * float(relative)},
                        step=_step, init_state=lambda batch_size: (), num_tokens=1, token_dim=TOKEN_DIM,
-                       identity=f"state:{_layout_hash(withhold)}", inputs=("state",))
+                       identity=f"state:{_layout_hash(withhold, relative)}", inputs=("state",))
 
 
 encoders.register(encoders.Kind(

@@ -1,0 +1,13 @@
+"""Control: task 'pick' with one token per object from the simulator's exact poses, an unordered set without ids.
+
+Command:  python launch.py --config=configs/pick_poses.py:small --workdir=runs/pick_poses
+          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
+Results:  results/small/recipe/README.md (the pick ladder: state, absolute state, poses, objects)
+Needs a dataset that stores observation/state. No pretraining, no rendering needed by the encoder. Token layout:
+roboshape/encoders/poses.py.
+"""
+from configs import common
+
+
+def get_config(variant: str = "paper"):
+  return common.get_config("pick", "poses", variant)
