@@ -8,7 +8,9 @@
                              savi/ (with figures/) for SAVi (`savi_dir`), ae/ for the AE (`ae_dir`)
   <workdir>/features/<key>/  encoder features cached per (dataset, encoder checkpoint)       (`features_dir`)
   <workdir>/policy/          checkpoints/, tb/, norm_stats.json, encoder.json, summary.json   (`policy_dir`);
-                             with policy.train_seeds, one such folder per seed: policy/seed_<s>/
+                             with policy.train_seeds, one such folder per seed: policy/seed_<s>/; and
+                             fingerprint.json, the config fields it was trained with (as <encoder>/ has its own:
+                             roboshape/train/fingerprint.py)
   <workdir>/eval/            results.jsonl/.json/.csv, tables, plots, videos/                 (`eval_dir`)
   <workdir>/report/          the report over a grid's runs (or the run itself)                (`report_dir`)
 
@@ -53,6 +55,7 @@ RUN_LOCK = ".run.lock"             # <workdir>/.run.lock: held by the run workin
 SELECTION_FILE = "selected.json"   # <encoder>/selected.json: the seed of pretrain.train_seeds pretraining selected
 DATASET_FILE = "dataset.json"      # <workdir>/dataset.json (and a published run's): its dataset's identity
 FIGURES_DIR = "figures"            # <encoder>/[seed_<s>/]figures/step_<n>.png: pretraining's validation figures
+FINGERPRINT_FILE = "fingerprint.json"   # <encoder>/ and policy/: the config fields that stage's output was made with
 
 # Fields that moved, old dotted name -> new: the pretraining settings SAVi and the AE share left the savi section.
 RENAMED = {
@@ -228,9 +231,19 @@ def seeds_figure(stage_dir: str, metric: str) -> str:
   return os.path.join(stage_dir, f"seeds_{metric}.png")
 
 
+def fingerprint_path(stage_dir: str) -> str:
+  """<stage_dir>/fingerprint.json: the config fields the stage that writes `stage_dir` read, with their values."""
+  return os.path.join(stage_dir, FINGERPRINT_FILE)
+
+
+def features_root(workdir: str) -> str:
+  """<workdir>/features/: every feature cache of the run (`features_dir`)."""
+  return os.path.join(workdir, "features")
+
+
 def features_dir(workdir: str, key: str) -> str:
   """The feature cache of one (encoder, dataset, dtype), named by its key (roboshape/train/cache.py)."""
-  return os.path.join(workdir, "features", key)
+  return os.path.join(features_root(workdir), key)
 
 
 def policy_dir(workdir: str, train_seed=None) -> str:

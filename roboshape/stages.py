@@ -11,10 +11,12 @@ alike: the stages write atomically (roboshape/fileio.py, orbax's temporary check
 temporary names), so what they wrote completely is kept and the same command resumes once there is space.
 """
 import contextlib
+import functools
 import importlib
 import json
 import os
 import time
+from typing import Sequence
 
 import ml_collections
 
@@ -28,6 +30,7 @@ from roboshape.errors import DiskFull
 from roboshape.errors import UserError
 from roboshape.grid import grid_configs
 from roboshape.grid import pretrained_from
+from roboshape.train import fingerprint
 
 STAGE_MODULES = {
     "collect": "roboshape.data.collect",
@@ -88,27 +91,52 @@ def _check_same_run(config, workdir: str) -> None:
                     "--workdir (nothing in it was changed).")
 
 
-def check_workdir(config, workdir: str) -> None:
+def check_workdir(config, workdir: str, redo: Sequence[str] = ()) -> fingerprint.Plan:
   """Raises UserError, before anything is written, unless `workdir` can hold the run of `config`: a directory
-  (or a path where one can be made) this process can write in, without the config.json of another run."""
+  (or a path where one can be made) this process can write in, without the config.json of another run, nor a
+  stage's output made with other values of the fields it reads unless `redo` names that stage
+  (roboshape/train/fingerprint.py). Returns the fingerprint plan the run carries out once it holds the workdir."""
   _check_writable(workdir)
   if "collect" in config.get("stages", ()) and config.get("data", {}).get("dir"):
     _check_writable(config.data.dir, "--config.data.dir")
   _check_same_run(config, workdir)
-  _check_dataset(config, workdir)
+  return fingerprint.check(config, workdir, redo, _check_dataset(config, workdir))
 
 
-def _check_dataset(config, workdir: str) -> None:
+def _check_dataset(config, workdir: str) -> list:
   """A run that collects must not find a dataset of another config where it would collect (the collect stage
-  would refuse it, after config.json had been rewritten). Imports the collect stage (TensorFlow) only when a
-  dataset folder exists."""
+  would refuse it, after config.json had been rewritten): one in a shared config.data.dir is refused here; the
+  differences of one in the run's own data folder are returned, for `fingerprint.check` to refuse them or --redo
+  to set that dataset aside. Imports the collect stage (TensorFlow) only when a dataset folder exists."""
   if "collect" not in config.stages or not os.path.isdir(rundir.data_root(config, workdir)):
-    return
+    return []
   from roboshape.data import collect  # pylint: disable=import-outside-toplevel
-  collect.check_existing(config, workdir)
+  own = collect.own_dataset_differences(config, workdir)
+  if not own:
+    collect.check_existing(config, workdir)
+  return own
 
 
-def run_grid(config, workdir: str) -> None:
+def check_redo(config, redo: Sequence[str]) -> None:
+  """Raises a one-line UserError unless every stage `redo` names (launch.py's --redo) is one whose output records
+  what it was made with (fingerprint.RECORDED) and that the config runs: a stage set aside and not run again would
+  leave the workdir without it. A shared dataset (config.data.dir, every grid's) is never set aside."""
+  unknown = [s for s in redo if s not in fingerprint.RECORDED]
+  if unknown:
+    raise UserError(f"--redo={','.join(redo)}: {', '.join(unknown)} is not a stage --redo takes; it takes "
+                    f"{', '.join(fingerprint.RECORDED)} (the cache, the evaluation and the report follow them by "
+                    "themselves).")
+  missing = [s for s in redo if s not in config.stages]
+  if missing:
+    raise UserError(f"--redo={','.join(redo)}: config.stages does not run {', '.join(missing)}, so its output "
+                    "would be set aside and not made again: add it to --config.stages, or drop it from --redo.")
+  if "collect" in redo and ("grid" in config or config.data.dir):
+    raise UserError("--redo=collect sets aside only a dataset in the run's own workdir, and this run's is shared "
+                    "(config.data.dir, or a grid's datasets): collect a new one into another --config.data.dir "
+                    "instead.")
+
+
+def run_grid(config, workdir: str, redo: Sequence[str] = ()) -> None:
   """Runs every (task, column) of a grid config, then the report over all of them.
 
   A baseline (any encoder but SAVi) whose run raises `UserError` (e.g. its pretrained weights are absent) is
@@ -118,16 +146,17 @@ def run_grid(config, workdir: str) -> None:
   With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
   go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt);
-  the last run left is resumed on every core.
+  the last run left is resumed on every core. `redo` (launch.py's --redo) reaches every run that runs the stage.
   The grid holds its workdir for the whole grid, and each run its own (rundir.hold_workdir). The grid's stage log
   (<workdir>/stages.json, entry rundir.GRID_CLOCK) adds up the wall time of its attempts: how long the whole grid
   took, across restarts, which no run's own log can tell (`roboshape.status` prints it).
   """
   config_check.check(config)
+  check_redo(config, redo)
   runs = list(grid_configs(config, workdir))
   check_workdir(config, workdir)
   for _, _, sub, sub_dir in runs:
-    check_workdir(sub, sub_dir)
+    check_workdir(sub, sub_dir, _redo_of(sub, redo))
   with rundir.hold_workdir(workdir):
     with disk_full_is_one_line("the grid", workdir):
       rundir.save_config(config, workdir)
@@ -137,22 +166,32 @@ def run_grid(config, workdir: str) -> None:
                             dict.fromkeys(c for _, c, _, _ in runs))
       runs = _skip_unavailable(config, runs)
     with rundir.stage_clock(workdir, rundir.GRID_CLOCK):
-      _run_grid_runs(config, runs)
+      _run_grid_runs(config, runs, redo)
       if "report" in config.stages:
         with disk_full_is_one_line("the report stage", workdir):
           importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
 
 
-def _run_grid_runs(config, runs) -> None:
+def _redo_of(sub, redo: Sequence[str]) -> tuple:
+  """The stages of a grid's --redo that its run `sub` runs (one served another run's encoder has no pretrain)."""
+  return tuple(s for s in redo if s in sub.stages)
+
+
+def run_redone(config, workdir: str, redo: Sequence[str] = ()) -> None:
+  """`run` with the stages of `redo` that `config` runs: a grid's run, in its lane or here."""
+  run(config, workdir, _redo_of(config, redo))
+
+
+def _run_grid_runs(config, runs, redo: Sequence[str] = ()) -> None:
   """The grid's runs, in `grid.lanes` parallel lanes or one after another here."""
   lanes = int(config.grid.get("lanes", 1))
   if lanes > 1:
-    _run_lanes(config, runs, lanes)
+    _run_lanes(config, runs, lanes, redo)
     return
   for task, column, sub, sub_dir in runs:
     print(f"[roboshape] grid run {task} x {column} -> {sub_dir}", flush=True)
     try:
-      run(sub, sub_dir)
+      run_redone(sub, sub_dir, redo)
     except DiskFull:
       raise
     except UserError as e:
@@ -178,7 +217,7 @@ def _skip_unavailable(config, runs):
   return left
 
 
-def _run_lanes(config, runs, lanes: int) -> None:
+def _run_lanes(config, runs, lanes: int, redo: Sequence[str] = ()) -> None:
   """The grid's runs in `lanes` parallel lanes, after each task's dataset is collected here: each lane's child
   process calls `run` on its run's config, as this process would. A run that serves another run's pretrained
   encoder (pretrain.from_workdir) starts once that run has ended."""
@@ -204,7 +243,8 @@ def _run_lanes(config, runs, lanes: int) -> None:
     else:
       failed.append(f"{task} x {column} ({message})")
 
-  lanes_lib.run_parallel(run, [(f"{task} x {column}", sub, sub_dir) for task, column, sub, sub_dir in runs],
+  lanes_lib.run_parallel(functools.partial(run_redone, redo=tuple(redo)) if redo else run,
+                         [(f"{task} x {column}", sub, sub_dir) for task, column, sub, sub_dir in runs],
                          lanes, on_done, after=pretrained_from(runs))
   if failed:
     raise UserError(f"grid runs failed: {'; '.join(failed)}; their logs are <run>/{lanes_lib.LOG_FILE}, and the "
@@ -262,20 +302,26 @@ def stage_runner(name: str, config):
   return lambda workdir: trainer.run(config, workdir, make_validation)
 
 
-def run(config, workdir: str) -> None:
+def run(config, workdir: str, redo: Sequence[str] = ()) -> None:
   """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`).
 
   Before any stage runs and before config.json is written, the whole config is checked (roboshape.config_check)
-  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was. The run holds
-  the workdir (rundir.hold_workdir) from then to its end, so a second run on it stops in one line.
+  and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was, and so does a
+  config that differs from what a stage's output in the workdir was made with, unless `redo` (launch.py's --redo)
+  names that stage, whose output is then set aside (roboshape/train/fingerprint.py). The run holds the workdir
+  (rundir.hold_workdir) from then to its end, so a second run on it stops in one line. Each stage that records
+  the config fields it reads records them as it starts (fingerprint.record), so config.json and the outputs agree.
   """
+  redo = tuple(dict.fromkeys(redo))
   if "grid" in config:
-    run_grid(config, workdir)
+    run_grid(config, workdir, redo)
     return
   config_check.check(config)
-  check_workdir(config, workdir)
+  check_redo(config, redo)
+  plan = check_workdir(config, workdir, redo)
   with rundir.hold_workdir(workdir):
     with disk_full_is_one_line("the run", workdir):
+      fingerprint.apply(plan, workdir, config)
       rundir.save_config(config, workdir)
     for name in config.stages:
       runner = stage_runner(name, config)
@@ -283,6 +329,7 @@ def run(config, workdir: str) -> None:
       start = time.time()
       with disk_full_is_one_line(f"the {name} stage", workdir):
         with rundir.stage_clock(workdir, name):
+          fingerprint.record(config, workdir, name)
           runner(workdir)
       print(f"[roboshape] stage {name} done in {time.time() - start:.1f}s", flush=True)
 

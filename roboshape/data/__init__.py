@@ -78,3 +78,19 @@ def read_record(path: str) -> Optional[Dict[str, Any]]:
   except (KeyError, TypeError) as e:
     raise UserError(f"{os.path.join(path, STATE_FILE)} lacks its shard records ({type(e).__name__}: {e}): collect "
                     "the dataset again into another --config.data.dir.") from None
+
+
+def non_finite(episode: Mapping[str, Any]) -> Optional[str]:
+  """Where an episode's actions or privileged states first hold a NaN or inf, e.g. "actions at step 3", or None
+  when they are finite (an episode without states has only its actions checked)."""
+  import numpy as np  # pylint: disable=import-outside-toplevel
+  for key, name in (("action", "actions"), ("state", "states")):
+    if key not in episode:
+      continue
+    values = np.asarray(episode[key])
+    if not np.issubdtype(values.dtype, np.floating):
+      continue
+    bad = ~np.isfinite(values.reshape(len(values), -1)).all(axis=1)
+    if bad.any():
+      return f"{name} at step {int(np.flatnonzero(bad)[0])}"
+  return None

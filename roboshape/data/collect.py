@@ -16,6 +16,8 @@ rewritten; a dataset of another config in the same place is refused.
 Damaged shards: whenever it finds a dataset, the stage checks every recorded shard's size and sha256 against
 roboshape.json (a fraction of a second for a :small dataset) and re-collects a missing, truncated or corrupted shard from its
 recorded seeds; the new file replaces it only when it is byte for byte the recorded one (`repair_shards`).
+A successful episode with a NaN or inf action or state stops the collection in one line naming its seed, before
+anything of it is written.
 """
 import contextlib
 import fcntl
@@ -75,10 +77,35 @@ def config_summary(config) -> Dict[str, Any]:
 
 def config_differences(stored: Mapping[str, Any], wanted: Mapping[str, Any]) -> list:
   """Human-readable differences, e.g. ["resolution: 32 in the dataset, 64 in the config"]."""
+  return [f"{key}: {old!r} in the dataset, {new!r} in the config"
+          for key, old, new in summary_differences(stored, wanted)]
+
+
+def summary_differences(stored: Mapping[str, Any], wanted: Mapping[str, Any]) -> list:
+  """[(summary field, stored value, wanted value)] where two datasets' summaries (`config_summary`) differ."""
   def value(summary, key):
     return summary.get(key, _SUMMARY_DEFAULTS.get(key))
-  return [f"{key}: {value(stored, key)!r} in the dataset, {value(wanted, key)!r} in the config"
-          for key in _SUMMARY_FIELDS if value(stored, key) != value(wanted, key)]
+  return [(key, value(stored, key), value(wanted, key)) for key in _SUMMARY_FIELDS
+          if value(stored, key) != value(wanted, key)]
+
+
+# The config field each summary field comes from (val_episodes: from data.val_fraction and data.min_val_episodes).
+CONFIG_FIELDS = {"task": "task", "resolution": "env.resolution", "min_distractors": "env.min_distractors",
+                 "max_distractors": "env.max_distractors", "max_episode_steps": "env.max_episode_steps",
+                 "train_episodes": "data.train_episodes", "depth": "env.depth"}
+
+
+def own_dataset_differences(config, workdir: str) -> list:
+  """[(config field, the dataset's value, the config's)] where the dataset in the run's own data folder
+  (config.data.dir empty) was collected otherwise than `config` says; [] when there is none or it agrees, or the
+  dataset lies in a shared config.data.dir (`check_existing` refuses that one)."""
+  if config.data.dir:
+    return []
+  state = rlds.load_state(data_lib.dataset_path(config, workdir))
+  if state is None:
+    return []
+  return [(CONFIG_FIELDS.get(key, key), old, new) for key, old, new in
+          summary_differences(state["config"], config_summary(config))]
 
 
 FOREIGN_MARKERS = ("dataset_info.json", "features.json")   # TFDS metadata: a dataset is there
@@ -193,6 +220,13 @@ class _SplitCollector:
     if seed < self.cursor or seed in self.buffer or seed >= self.requested_until:
       return  # a duplicate (e.g. after a worker restart)
     success = bool(episode["success"])
+    broken = data_lib.non_finite(episode) if success else None
+    if broken:      # a failed episode is never stored: a simulation that blew up is a failure like any other
+      raise UserError(f"the expert's episode of seed {seed} ({self.split} split of {self.writer.path}) has "
+                      f"non-finite {broken} (NaN or inf): nothing of it was written, the {self.kept} episodes "
+                      "committed before it are kept. The seeds are fixed, so collecting again meets it again: the "
+                      "simulator or the expert misbehaves on this seed (reproduce it with "
+                      "roboshape.sim on that seed).")
     if not self.writer.has_state:   # resuming a dataset begun before the state was stored
       episode = {k: v for k, v in episode.items() if k != "state"}
     self.buffer[seed] = episode if success else None

@@ -75,7 +75,13 @@ def _iterate(ds: tf.data.Dataset, path: str, state: Dict[str, Any], split: str) 
   ds = ds.map(_flatten, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True).prefetch(2)
   try:
     for episode in tfds.as_numpy(ds):
-      yield _to_python(episode)
+      episode = _to_python(episode)
+      broken = data_lib.non_finite(episode)
+      if broken:
+        raise UserError(f"episode seed {episode['seed']} of split {split!r} in the dataset at {path} has non-finite "
+                        f"{broken} (NaN or inf), which no stage can learn from: `python -m roboshape.data.validate "
+                        f"{path}` lists every such episode; collect a new dataset into another --config.data.dir.")
+      yield episode
   except tf.errors.OpError as e:   # DataLossError on a truncated or corrupted record, NotFoundError, ...
     raise _damaged(path, state, split, e) from None
 
@@ -115,7 +121,7 @@ def read_episodes(path: str, split: str, allow_incomplete: bool = False) -> Iter
   env_version str; S = T + 1 (the last step holds the final frame and a zero action).
   allow_incomplete: read a dataset whose collection has not finished (tools); training refuses one.
   A missing, truncated or corrupted shard is a one-line UserError naming it (sizes are checked before reading,
-  checksums when a record fails to decode).
+  checksums when a record fails to decode), and so is an episode whose actions or states hold a NaN or inf.
   """
   state = load_state(path)
   if not allow_incomplete:

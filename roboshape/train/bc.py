@@ -17,6 +17,9 @@ a = scale * a_norm + offset; identity when the demos' actions already lie in [-1
 validation figures), val_metrics.json / .png (every validation result, across resumes, and its curves). The stage
 skips when the last checkpoint is at config's steps. Every batch is split over the local devices, parameters
 replicated (roboshape/train/sharding.py, as SAVi's pretraining does; launch.py makes each CPU core a device).
+A non-finite loss or gradient norm stops training at once (roboshape/train/divergence.py, as pretraining does):
+each step's metrics are checked before anything is logged or saved, and the parameters before every save, so no
+checkpoint of non-finite parameters is written; the last finite one stays and the stage is not done.
 """
 import functools
 import json
@@ -38,6 +41,7 @@ from roboshape.errors import UserError
 from roboshape.models import heads
 from roboshape.models import policy as policy_lib
 from roboshape.train import cache
+from roboshape.train import divergence
 from roboshape.train import history as history_lib
 from roboshape.train import scalars
 from roboshape.train import sharding
@@ -283,10 +287,18 @@ def _keep_interrupted(ckpt: Checkpointer, state, start: int) -> None:
   interrupted attempt's steps after its last validation; the stage log (stages.json) counts every attempt."""
   ckpt.wait()
   step = int(state["step"])
-  if step > start and step != ckpt.latest_step():
+  if step > start and step != ckpt.latest_step() and divergence.finite(state["params"]):
     ckpt.save(step, state)
     ckpt.wait()
     tqdm.write(f"[train_policy] interrupted: saved step {step}")
+
+
+def _save_finite(ckpt: Checkpointer, step: int, state, learning_rate: float) -> None:
+  """Saves `state` as checkpoint `step` unless its parameters are not finite (a Diverged error then, the last
+  finite checkpoint kept): no non-finite checkpoint is ever written, whatever the metrics said."""
+  divergence.check_params(state["params"], step, ckpt, stage="train_policy", what="the policy's",
+                          fields={"policy.train.learning_rate": learning_rate})
+  ckpt.save(step, state)
 
 
 def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> dict:
@@ -325,14 +337,22 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
   metrics = None
   val = {}
   seconds_before, run_start = history_lib.seconds_at(out, "val_metrics", start), time.perf_counter()
+  def stop_if_diverged(step_metrics, step: int) -> None:
+    values = jax.device_get(step_metrics)
+    divergence.check({"loss": values["nll"], "gradient norm": values["grad_norm"]}, step, ckpt,
+                     stage="train_policy", what="the policy's", fields={"policy.train.learning_rate": tc.learning_rate})
+
   try:
     for step in progress.bar(range(start, tc.steps), desc="train_policy", initial=start, total=tc.steps):
       batch = dp.put_batch(train_w.sample(tc.batch_size, seed, step))
       previous = metrics
       state, metrics = train_step(state, batch, base_rng)
       if previous is not None:      # at most one step in flight: the bar's rate is the steps' rate, not dispatch's
-        jax.block_until_ready(previous)
+        stop_if_diverged(previous, step)
       done = step + 1
+      if (done % tc.log_every == 0 or done % tc.eval_every == 0 or done % tc.checkpoint_every == 0
+          or done == tc.steps):     # this step's metrics are checked before anything is logged or saved
+        stop_if_diverged(metrics, done)
       if done % tc.log_every == 0 or done == tc.steps:
         writer.write(done, {**{f"train/{k}": float(v) for k, v in metrics.items()},
                             "train/learning_rate": float(schedule(step))})
@@ -345,7 +365,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
         tqdm.write(f"[train_policy] step {done}: train nll {float(metrics['nll']):.3f}, "
                    f"val nll {val['nll']:.3f}, val action mse {val['action_mse']:.5f}")
       if done % tc.checkpoint_every == 0 or done == tc.steps:
-        ckpt.save(done, state)
+        _save_finite(ckpt, done, state, tc.learning_rate)
   except KeyboardInterrupt:
     _keep_interrupted(ckpt, state, start)
     raise
@@ -438,3 +458,66 @@ def load_policy(workdir: str, history: Optional[int] = None, action: Optional[st
   spec = policy_lib.ControlSpec(history=history or ev.history or config.policy.history,
                                 action=action or ev.action, noise=ev.noise)
   return policy_lib.Policy(net, params, encoder, spec, stats["scale"], stats["offset"], seed=seed)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A policy that cannot act.
+
+
+def how_trained(workdir: str, train_seed=None) -> str:
+  """"checkpoint step N in <dir>, trained with policy.train.learning_rate=..., ..." for the messages that blame a
+  policy: its newest checkpoint and the optimisation settings its fingerprint.json records (the workdir's
+  config.json for a policy trained before fingerprints were recorded)."""
+  from roboshape.train import fingerprint  # pylint: disable=import-outside-toplevel
+  config = rundir.load_config(workdir)
+  fields, from_config = fingerprint.recorded(config, workdir, "train_policy")
+  source = rundir.fingerprint_path(rundir.policy_dir(workdir))
+  if fields is None or from_config:
+    fields, source = fingerprint.fingerprint(config, "train_policy"), rundir.config_path(workdir)
+  out = rundir.policy_dir(workdir, train_seed)
+  steps = rundir.saved_steps(out)
+  settings = ", ".join(f"{k}={fields[k]!r}" for k in (f"policy.train.{f}" for f in (
+      "learning_rate", "grad_clip", "warmup_steps", "batch_size")) if k in fields)
+  return (f"checkpoint step {steps[-1] if steps else '?'} in {rundir.checkpoints(out)}, trained with {settings} "
+          f"({source})")
+
+
+def _cannot_act(workdir: str, train_seed, what: str) -> UserError:
+  return UserError(f"the policy in {rundir.policy_dir(workdir, train_seed)} cannot act: {what}. It is the policy's "
+                   f"fault, not the simulator's: {how_trained(workdir, train_seed)}. Train it again with settings "
+                   "that keep its loss finite (e.g. a lower --config.policy.train.learning_rate) with "
+                   "--redo=train_policy, or in another --workdir.")
+
+
+class ActingPolicy:
+  """A loaded `Policy` whose actions are checked: `act_batch` and `act` raise a one-line UserError naming the
+  policy's checkpoint and how it was trained when an action is NaN or inf (which the simulator could not take);
+  everything else is the policy's own."""
+
+  def __init__(self, policy: policy_lib.Policy, workdir: str, train_seed=None):
+    self._policy, self._workdir, self._train_seed = policy, workdir, train_seed
+
+  def __getattr__(self, name):
+    return getattr(self._policy, name)
+
+  def act_batch(self, frames) -> np.ndarray:
+    actions = self._policy.act_batch(frames)
+    if not np.all(np.isfinite(actions)):
+      rows = np.flatnonzero(~np.all(np.isfinite(actions), axis=-1))
+      raise _cannot_act(self._workdir, self._train_seed,
+                        f"its actions are not finite (NaN or inf) for env(s) {rows.tolist()} of the batch at "
+                        f"control step {int(np.max(np.asarray(self._policy.carry.count)))}")
+    return actions
+
+  def act(self, frame) -> np.ndarray:
+    return self.act_batch(jax.tree.map(lambda x: np.asarray(x)[None], frame))[0]
+
+
+def acting_policy(workdir: str, train_seed=None) -> ActingPolicy:
+  """`load_policy(workdir, train_seed=...)` for closed-loop evaluation: a one-line UserError naming the checkpoint
+  and how it was trained when its parameters are not all finite (a policy trained before training stopped at a
+  diverging loss), and its actions checked as it acts (`ActingPolicy`)."""
+  policy = load_policy(workdir, train_seed=train_seed)
+  if not divergence.finite(policy.params):
+    raise _cannot_act(workdir, train_seed, "its parameters are not finite (NaN or inf)")
+  return ActingPolicy(policy, workdir, train_seed)

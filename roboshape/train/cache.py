@@ -12,7 +12,9 @@ Layout of <workdir>/features/<key>/:
   manifest.json                  what was encoded, written last (its presence means the cache is complete)
   <split>/shard_00000.npz ...    `shard_size` episodes each: features [F, N, D], action float32 [F, A],
                                  length int [E] (S frames per episode, F = sum S), seed int [E], success bool [E]
-Shards are written atomically, so a killed run resumes at the first missing shard.
+Shards are written atomically, so a killed run resumes at the first missing shard. Features that are not finite
+(NaN or inf, from the encoder or from a float16 cache's overflow) are refused in one line naming the episode, and
+their shard is not written.
 """
 import hashlib
 import json
@@ -81,7 +83,30 @@ def _encode_group(encoder, episodes: List[dict], dtype) -> List[np.ndarray]:
     while len(videos[k]) < BATCH_EPISODES:
       videos[k].append(videos[k][-1])
   tokens = np.asarray(encoder.encode_batch({k: np.stack(v) for k, v in videos.items()}))   # [B, L, N, D]
-  return [tokens[i, :len(e["image"])].astype(dtype) for i, e in enumerate(episodes)]
+  with np.errstate(over="ignore"):     # an overflow of the cache's dtype is refused below, in one line
+    features = [tokens[i, :len(e["image"])].astype(dtype) for i, e in enumerate(episodes)]
+  for e, encoded, cached in zip(episodes, tokens, features):
+    _check_finite(encoder, e, encoded[:len(e["image"])], cached, dtype)
+  return features
+
+
+def _check_finite(encoder, episode: dict, encoded: np.ndarray, cached: np.ndarray, dtype) -> None:
+  """A one-line UserError naming the episode when its features, as the encoder gives them or as cached in `dtype`,
+  hold a NaN or inf: a policy trained on them would learn NaN, so nothing of their shard is written."""
+  bad = ~np.isfinite(cached).reshape(len(cached), -1).all(axis=1)
+  if not bad.any():
+    return
+  frame = int(np.flatnonzero(bad)[0])
+  where = (f"episode seed {episode.get('seed', '?')} (frame {frame} of {len(cached)})")
+  if np.isfinite(encoded).all():
+    raise UserError(f"the {encoder.name} encoder's features of {where} overflow policy.cache_dtype={dtype!r} "
+                    f"(largest |value| {float(np.abs(encoded).max()):.4g}): cache them as float32 "
+                    "(--config.policy.cache_dtype=float32); nothing of their shard was written.")
+  raise UserError(f"the {encoder.name} encoder ({encoder.identity}) gives non-finite features (NaN or inf) for "
+                  f"{where}; nothing of their shard was written. The encoder is broken (a pretrained one: its "
+                  "pretraining diverged, pretrain it again, e.g. with --redo=pretrain and a lower "
+                  "--config.pretrain.train.learning_rate) or its inputs are (`python -m roboshape.data.validate "
+                  "<dataset>`).")
 
 
 def _step_actions(episode: dict) -> np.ndarray:

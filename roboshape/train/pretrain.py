@@ -16,8 +16,9 @@ devices of a 1-D mesh ("data") and keeps parameters replicated. Writes under <wo
 (orbax; resumed after a kill at the same step, with the same data order since batch i of the dataset's
 deterministic order always feeds step i), tb/ (TensorBoard scalars: loss, recon_mse, grad_norm, lr, and the
 validation's metrics), val_metrics.json and val_metrics.png (every validation result so far, across resumes, and
-its curve). A non-finite loss stops training with the step and the batch's episode seeds; the last good checkpoint
-stays.
+its curve). A non-finite loss or gradient norm stops training at once with the step and the batch's episode seeds
+(roboshape/train/divergence.py, as behaviour cloning does): no checkpoint of non-finite parameters is written, the
+last one stays, and the stage is not done.
 
 Seeds (`train_and_select`, what the stage runs): with pretrain.train_seeds = () one run with config.seed writes the
 above into <workdir>/<encoder>/ itself. With pretrain.train_seeds = (s1, s2, ...) each seed is a run of its own,
@@ -53,6 +54,7 @@ from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
 from roboshape.models import savi
+from roboshape.train import divergence
 from roboshape.train import history as history_lib
 from roboshape.train import scalars
 from roboshape.train import sharding
@@ -268,6 +270,7 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
       state, start = ckpt.resume(state)     # the newest step that restores; damaged newer ones are set aside
       print(f"[pretrain] resuming from step {start}", flush=True)
     step_key = jax.random.fold_in(key, 2)
+    fields = {"pretrain.train.learning_rate": tc.learning_rate, "pretrain.train.clip_norm": tc.clip_norm}
     seconds_before, run_start = history_lib.seconds_at(root, "val_metrics", start), time.perf_counter()
     writer = scalars.Scalars(os.path.join(root, "tb"))
     batches = batches_from(start)
@@ -286,18 +289,16 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
         depth = comp.dp.put_batch(batch["depth"]) if comp.depth_weight > 0 else None
         new_state, metrics = comp.train_step(state, video, depth, step_key)
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-        if not np.isfinite(metrics["loss"]):
-          ckpt.wait()
-          raise UserError(
-              f"{title} loss is {metrics['loss']} at step {step} (batch {step}, episode seeds "
-              f"{np.asarray(batch['episode_seed']).tolist()}); training stopped, the last good checkpoint "
-              f"(step {ckpt.latest_step()}) is kept in {ckpt.directory}. Lower --config.pretrain.train.learning_rate"
-              f" or --config.pretrain.train.clip_norm and run again.")
         state, done = new_state, step + 1
+        divergence.check({"loss": metrics["loss"], "gradient norm": metrics["grad_norm"]}, done, ckpt,
+                         stage="pretrain", what=f"the {title}", fields=fields,
+                         detail=f" (batch {step}, episode seeds {np.asarray(batch['episode_seed']).tolist()})")
         history.append((done, metrics["loss"]))
         if done % tc.log_every == 0 or done == tc.steps:
           writer.write(done, {f"train/{name}": value for name, value in metrics.items()})
         if done % tc.checkpoint_every == 0 or done == tc.steps:
+          divergence.check_params(state["params"], done, ckpt, stage="pretrain", what=f"the {title}'s",
+                                  fields=fields)
           ckpt.save(done, state)
         if validation and (done % ec.every == 0 or done == tc.steps):
           evals.append((done, _validate(validation, state["params"], done, root, config, title,
