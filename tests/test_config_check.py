@@ -161,7 +161,8 @@ def test_a_dataset_of_another_config_in_the_workdir_is_refused_before_config_jso
                      {"train": [_synthetic_episode(s, task="pick", state=True) for s in range(3)],
                       "val": [_synthetic_episode(1_000_000, task="pick", state=True)]}, summary)
   before = _snapshot(workdir)
-  with pytest.raises(UserError, match="holds a dataset of another config .*train_episodes: 3 in the dataset"):
+  with pytest.raises(UserError, match=r"holds what the collect stage made with other settings "
+                                       r"\(.*data.train_episodes: 3 there, 4 in this config\).*--redo=collect"):
     stages.run(config, workdir)
   assert _snapshot(workdir) == before       # config.json included: nothing was rewritten
 

@@ -384,7 +384,8 @@ def test_a_non_finite_loss_stops_naming_step_and_seeds(trained, tmp_path, monkey
     return new_state, metrics
 
   monkeypatch.setattr(comp, "train_step", poisoned)
-  with pytest.raises(UserError, match=r"nan at step 15 \(batch 15, episode seeds \[115\]\).*step 10"):
+  with pytest.raises(UserError, match=r"^pretrain: the SAVi loss is nan at step 16 \(batch 15, episode seeds \[115\]\)"
+                                        r".*the last checkpoint, step 10, is finite and kept"):
     pretrain.train(config, str(tmp_path), Source(trained["episodes"][0]["image"]))
   with Checkpointer(str(tmp_path / "savi" / "checkpoints")) as ckpt:
     assert ckpt.latest_step() == 10
