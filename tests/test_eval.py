@@ -13,6 +13,7 @@ from configs import reproduce
 from roboshape import envs
 from roboshape import rundir
 from roboshape import stages
+from roboshape.envs import state as state_lib
 from roboshape.errors import UserError
 from roboshape.eval import closed_loop
 from roboshape.eval import publish
@@ -70,8 +71,14 @@ class FakePool:
     self.elapsed = np.zeros(len(seeds), np.int32)
     self.done = np.zeros(len(seeds), bool)
     self.success = np.zeros(len(seeds), bool)
-    return dict(image=self._frames(), state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(),
+    return dict(image=self._frames(), state=self._state(), success=self.success.copy(),
                 done=self.done.copy(), elapsed=self.elapsed.copy(), reached=self._reached())
+
+  def _state(self):
+    """The hand starts 30 cm from the cube (at the origin) along x and comes 5 cm nearer each step."""
+    state = np.zeros((len(self.seeds), state_lib.DIM), np.float32)
+    state[:, state_lib.slices()["tcp_pos"].start] = 0.3 - 0.05 * self.elapsed
+    return state
 
   def _reached(self):
     return np.stack([self.elapsed >= 1, self.elapsed >= 2, self.success], axis=1)
@@ -91,7 +98,7 @@ class FakePool:
       if self.elapsed[i] >= length:
         self.done[i], self.success[i] = True, ok
     return dict(image=self._frames(), segmentation=np.zeros(self._frames().shape[:3], np.uint8),
-                state=self.elapsed[:, None].astype(np.float32), success=self.success.copy(), done=self.done.copy(),
+                state=self._state(), success=self.success.copy(), done=self.done.copy(),
                 elapsed=self.elapsed.copy(), reached=self._reached())
 
   def restart(self):
@@ -224,7 +231,11 @@ def test_rollouts_crash_restart_keeps_finished():
   for r, res in got:
     ok, length = _outcome(r.seed)
     reached = ["moved", "halfway"] + (["on_target"] if ok else [])
-    assert res == dict(success=ok, length=length, ended="success" if ok else "horizon", reached=reached)
+    # The hand's closest approach to the cube over the episode (30 cm, 5 cm nearer a step), and the first actions'
+    # length: the policy's 1.5 clipped to 1 in each of x, y, z.
+    closest = round(100 * abs(0.3 - 0.05 * min(length, 6)), 2)
+    assert res == dict(success=ok, length=length, ended="success" if ok else "horizon", reached=reached,
+                       closest_cube_cm=closest, first_move=round(float(np.sqrt(3)), 4))
   assert policy.batch_sizes == {2}                                   # the short last wave is padded
 
 

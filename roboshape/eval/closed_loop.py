@@ -21,6 +21,12 @@ done (success or horizon; a done env is a no-op in the pool). A finished rollout
 the others; past that the rollout is recorded as ended "worker_crash" and left out of
 the statistics (tables say how many). Actions are clipped to [-1, 1] before they reach the env.
 
+Where a failure is lost, per rollout (from the pool's privileged `state`, which the policy need not read):
+`closest_cube_cm`, the tool centre point's closest distance to the cube over the episode, in centimetres (a policy
+that never reaches the cube against one that reaches it and fails to grasp), and `first_move`, the mean length of
+the position part of the policy's first FIRST_STEPS actions (controller units, 1 = the largest step): a policy that
+imitates the motion it sees in its history starts still (the copycat failure), where the experts start at full speed.
+
 Outputs in <workdir>/eval/: results.jsonl (the log), results.json (every rollout + per-level summary), results.csv,
 table.md, table.tex, success_by_level.png, videos/<level>_s<seed>.{mp4,gif} for the first
 `config.eval.videos_per_level` rollouts of each level, and for SAVi videos/<...>_slots.{mp4,gif}: the camera frame,
@@ -47,6 +53,7 @@ from roboshape import fileio
 from roboshape import progress
 from roboshape import rundir
 from roboshape.encoders import columns
+from roboshape.envs import state as state_lib
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
 from roboshape.eval import plots
@@ -56,6 +63,7 @@ from roboshape.eval import videos
 from roboshape.sim.spec import CAMERA_KEYS
 
 SEED_STRIDE = 100_000
+FIRST_STEPS = 5     # the actions `first_move` averages over
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,10 +169,16 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
   policy.reset_slots(list(range(n)), seeds=[r.seed for r in wave] + list(range(k, n)))  # padding: its index
   frames = {i: [out["image"][i]] for i, r in enumerate(wave) if r in record}
   active = np.ones(k, bool)
+  closest = _cube_distance(out, k)
+  moves = []
   while active.any():
     batch = {key: _pad(np.asarray(out[key]), n) for key in inputs}
     actions = np.clip(np.asarray(policy.act_batch(batch), np.float32)[:k], -1.0, 1.0)
+    if len(moves) < FIRST_STEPS:
+      moves.append(np.linalg.norm(actions[:, :3], axis=-1))
     out = pool.step(actions)
+    if closest is not None:
+      closest = np.where(active, np.minimum(closest, _cube_distance(out, k)), closest)
     for i in np.flatnonzero(active):
       if i in frames:
         frames[i].append(out["image"][i])
@@ -175,7 +189,20 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
         result = dict(success=success, length=int(out["elapsed"][i]), ended="success" if success else "horizon")
         if names and "reached" in out:
           result["reached"] = [name for name, hit in zip(names, out["reached"][i]) if hit]
+        if closest is not None:
+          result["closest_cube_cm"] = round(100.0 * float(closest[i]), 2)
+        result["first_move"] = round(float(np.mean([m[i] for m in moves])), 4)
         finish(wave[i], result, np.stack(frames[i]) if i in frames else None)
+
+
+def _cube_distance(out: Dict, k: int) -> Optional[np.ndarray]:
+  """float [k]: the tool centre point's distance to the cube (metres) in each env of `out`, from its privileged
+  `state` (roboshape/envs/state.py); None when the pool gives no state (a fake in tests)."""
+  if "state" not in out:
+    return None
+  state = np.asarray(out["state"], np.float32)[:k]
+  cuts = state_lib.slices()
+  return np.linalg.norm(state[:, cuts["tcp_pos"]] - state[:, cuts["cube_pos"]], axis=-1)
 
 
 def _pad(x: np.ndarray, n: int) -> np.ndarray:
@@ -286,7 +313,7 @@ def run(config, workdir: str) -> None:
   make_pool = lambda level: SimPool(EnvSpec.from_config(config, level=level), num_workers=config.sim.num_workers)
   slot_video = _slot_video_fn(config, workdir)
   for i, train_seed in enumerate(rundir.train_seeds(config)):
-    policy = bc.load_policy(workdir, train_seed=train_seed)
+    policy = bc.acting_policy(workdir, train_seed=train_seed)    # a policy that cannot act is blamed in one line
     fingerprint = policy_fingerprint(workdir, train_seed, config.policy.eval.to_dict())
     evaluate(config, workdir, policy, make_pool, SimWorkerError, fingerprint, train_seed=train_seed,
              videos_per_level=config.eval.videos_per_level if i == 0 else 0, slot_video=slot_video)

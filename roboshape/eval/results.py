@@ -10,7 +10,8 @@ what it finished and a rerun skips it. A record:
 `ended` is "success" (the env's success check fired), "horizon" (the episode ran to its step limit) or
 "worker_crash" (the simulator worker died on this rollout more often than allowed: the rollout is reported and
 left out of the statistics). `reached` names the task's milestones (roboshape.envs.MILESTONES) the rollout reached
-at some step; logs written before milestones were recorded have none. Success rates are computed per evaluation
+at some step; logs written before milestones were recorded have none, nor do they have `closest_cube_cm` and
+`first_move` (where a failure is lost: roboshape/eval/closed_loop.py). Success rates are computed per evaluation
 seed (over its rollouts), then mean +- std (population std, ddof=0) over seeds, as in the paper's tables.
 """
 import csv
@@ -24,7 +25,7 @@ import numpy as np
 from roboshape import fileio
 
 CSV_FIELDS = ("task", "encoder", "train_seed", "level", "seed_index", "rollout", "seed", "success", "length", "ended",
-              "reached")
+              "reached", "closest_cube_cm", "first_move")
 
 
 def key(record: Dict) -> tuple:
