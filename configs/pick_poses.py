@@ -2,7 +2,8 @@
 
 Command:  python launch.py --config=configs/pick_poses.py:small --workdir=runs/pick_poses
           (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
-Results:  results/small/recipe/README.md (the pick ladder: state, absolute state, poses, objects)
+Runtime:  not measured as a cell of the grid (its probes' stage times: results/small/recipe/probes.csv).
+Results:  results/small/pick_poses/README.md (not published yet; the pick ladder's rung: results/small/recipe)
 Needs a dataset that stores observation/state. No pretraining, no rendering needed by the encoder. Token layout:
 roboshape/encoders/poses.py.
 """
