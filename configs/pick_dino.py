@@ -1,11 +1,7 @@
-"""Task 'pick' with the DINO ViT encoder (official checkpoint, frozen) and the transformer BC policy.
+"""Task 'pick' with the `dino` encoder (roboshape/encoders/baselines.py), the rest as configs/common.py sets it.
 
-Command:  python launch.py --config=configs/pick_dino.py:small --workdir=runs/pick_dino
-          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
-Runtime:  not yet timed (no pretraining; the cache stage runs the frozen ViT once over every frame); each cell's stage
-          times: results/small/README.md.
-Results:  results/small/pick_dino/README.md (not published yet: the grid skips the cell where the weights are absent)
-Needs the official weights (README.md, "Weights of the R3M and DINO baselines"). No pretrain stage.
+Command:  python launch.py --config=configs/pick_dino.py:small   (variants :paper, :small, :tiny)
+Results:  results/small/pick_dino/README.md (not published yet)
 """
 from configs import common
 

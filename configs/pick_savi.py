@@ -1,11 +1,6 @@
-"""Task 'pick' with the SAVi encoder (pretrained on the task's own demos, frozen) and the transformer BC policy.
+"""Task 'pick' with the `savi` encoder (roboshape/encoders/savi.py), the rest as configs/common.py sets it.
 
-Command:  python launch.py --config=configs/pick_savi.py:small --workdir=runs/pick_savi
-          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/pick)
-Runtime:  about four hours on one core at :small (SAVi's three pretraining seeds about an hour and a quarter, the three
-          behaviour-cloning seeds about two hours, the evaluation about 35 minutes), plus the task's collection (2000
-          demos, shared by its runs: results/small/report/report.md "Compute", column collect); measured on 2-core CPUs
-          (results/small/README.md "Machines and speed"), each stage's time in results/small/pick_savi/stages.json.
+Command:  python launch.py --config=configs/pick_savi.py:small   (variants :paper, :small, :tiny)
 Results:  results/small/pick_savi/README.md
 """
 from configs import common

@@ -1,12 +1,7 @@
-"""Task 'place' with the R3M ResNet encoder (official checkpoint, frozen) and the transformer BC policy.
+"""Task 'place' with the `r3m` encoder (roboshape/encoders/baselines.py), the rest as configs/common.py sets it.
 
-Command:  python launch.py --config=configs/place_r3m.py:small --workdir=runs/place_r3m
-          (variants :paper, :small, :tiny; the task's dataset can be shared: --config.data.dir=runs/data/place)
-Runtime:  not yet timed (no pretraining; the cache stage runs the frozen ResNet once over every frame); each cell's
-          stage times: results/small/README.md.
-Results:  results/small/place_r3m/README.md (not published yet: the grid skips the cell where the weights are absent)
-Run with the place control setting (configs/common.py TASK_CONTROL), as every encoder on place.
-Needs the official weights (README.md, "Weights of the R3M and DINO baselines"). No pretrain stage.
+Command:  python launch.py --config=configs/place_r3m.py:small   (variants :paper, :small, :tiny)
+Results:  results/small/place_r3m/README.md (not published yet)
 """
 from configs import common
 

@@ -44,11 +44,14 @@ def test_a_committed_readme_block_equals_what_its_results_csv_and_config_json_gi
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_an_experiment_config_gives_its_command_runtime_and_results_readme_and_quotes_no_result(name):
+def test_an_experiment_config_gives_its_command_and_results_readme_in_a_few_lines_and_quotes_no_result(name):
   with open(os.path.join(ROOT, "configs", f"{name}.py")) as f:
     doc = ast.get_docstring(ast.parse(f.read()))
-  assert f"python launch.py --config=configs/{name}.py" in doc and "\nRuntime:  " in doc
+  assert f"python launch.py --config=configs/{name}.py" in doc
   readme_path = re.search(r"\nResults:  (\S+)", doc).group(1)
+  # what it is in a line or two: runtimes and results live in generated files (reproduce says what the grid runs)
+  assert name == "reproduce" or (len(doc.splitlines()) <= 4 and "Runtime" not in doc), (
+      f"configs/{name}.py: a line or two, the command and where its results are; runtimes belong in {readme_path}")
   assert readme_path == ("results/small/README.md" if name == "reproduce" else f"results/small/{name}/README.md")
   # the README is there, or the config says it is not published yet (and stops saying so once it is)
   published = os.path.isfile(os.path.join(ROOT, readme_path))
