@@ -38,7 +38,8 @@ def _child(out_path: str) -> None:
       draw = task.draws[0]
       facts["frames"][(level, seed)] = dict(rgb=rgb[0], seg=seg[0], background=draw.background,
                                             colors=draw.colors, sizes=draw.sizes, shapes=draw.shapes,
-                                            table=draw.table)
+                                            table=draw.table,
+                                            cube=task.privileged_state()["cube_p"][0].numpy())
     if level == "train":  # the same seed again, after other seeds: the same first frame, bit for bit
       obs, _ = env.reset(seed=FRAME_SEEDS[0])
       facts["again"] = task.frames(obs)[0][0]
@@ -251,3 +252,27 @@ def test_expert_is_batched_over_envs(facts, task):
   batched, single = facts["batched"][task]
   assert batched.shape == (2, 7) and not np.allclose(batched[0], batched[1])
   np.testing.assert_allclose(batched, single, atol=1e-6)
+
+
+def test_the_camera_model_projects_the_cube_onto_its_mask(facts):
+  from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
+  for frame in facts["frames"].values():
+    rows, cols = np.nonzero(frame["seg"] == seg_ids.CUBE)
+    centroid = (2 * np.array([rows.mean(), cols.mean()]) + 1) / RESOLUTION - 1     # pixel centres in [-1, 1]
+    row, col, _ = camera.project(frame["cube"].astype(np.float32))
+    np.testing.assert_allclose([row, col], centroid, atol=2 / RESOLUTION)          # within a pixel
+
+
+def test_the_camera_model_puts_its_target_at_the_centre_and_unprojects_what_it_projects():
+  from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
+  row, col, depth = camera.project(np.asarray([camera.TARGET], np.float32))
+  np.testing.assert_allclose([row[0], col[0]], [0, 0], atol=1e-6)
+  assert depth[0] == pytest.approx(np.linalg.norm(np.subtract(camera.TARGET, camera.EYE)), rel=1e-6)
+  points = np.random.default_rng(0).uniform((-0.2, -0.2, 0.0), (0.2, 0.2, 0.2), (50, 3)).astype(np.float32)
+  row, col, depth = camera.project(points)
+  np.testing.assert_allclose(np.asarray(camera.unproject(row, col, depth)), points, atol=1e-5)
+  # Higher in the world is higher in the image (smaller row); the camera faces the robot, so the robot's left (+y)
+  # is the image's right (larger col).
+  base = np.asarray([[0.0, 0.0, 0.05]], np.float32)
+  assert camera.project(base + (0, 0, 0.05))[0] < camera.project(base)[0]
+  assert camera.project(base + (0, 0.05, 0))[1] > camera.project(base)[1]

@@ -21,6 +21,7 @@ from mani_skill.utils import sapien_utils
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
+from roboshape.envs import camera
 from roboshape.envs import ids
 from roboshape.envs import palettes
 from roboshape.envs import state as state_lib
@@ -33,9 +34,7 @@ REST_QPOS = np.array([0.0, np.pi / 8, 0.0, -np.pi * 5 / 8, 0.0, np.pi * 3 / 4, n
 # Workspace on the table top (x forward from the robot, y to its left), meters.
 CUBE_REGION = ((-0.08, 0.08), (-0.14, 0.14))
 DISTRACTOR_REGION = ((-0.16, 0.16), (-0.22, 0.22))
-CAMERA_EYE = (0.42, 0.0, 0.34)
-CAMERA_TARGET = (-0.16, 0.0, 0.02)
-CAMERA_FOV = 0.95  # radians, vertical
+CAMERA_EYE, CAMERA_TARGET, CAMERA_FOV = camera.EYE, camera.TARGET, camera.FOV   # roboshape/envs/camera.py
 
 
 @dataclasses.dataclass
