@@ -207,18 +207,9 @@ def peak_memory() -> str:
 
 
 def tokens_per_frame(config, encoder: str) -> str:
-  """What one frame becomes for the policy: 'N x D' where it is known without building the encoder."""
-  from roboshape.encoders import objects, state  # pylint: disable=import-outside-toplevel
-  from roboshape.models import ae  # pylint: disable=import-outside-toplevel
-  known = {
-      "savi": lambda: f"{config.savi.num_slots} x {config.savi.slot_size}",
-      "ae": lambda: f"1 x {ae.latent_size(config)}",
-      "state": lambda: f"1 x {state.TOKEN_DIM}",
-      "objects": lambda: f"{len(objects.token_ids(config.env.max_distractors))} x {objects.DIM}",
-      "r3m": lambda: f"1 x (2048 for {config.baselines.r3m.arch}; 512 for resnet18/34)",
-      "dino": lambda: "1 + patches (patch_tokens=True)" if config.baselines.dino.patch_tokens else "1 (CLS)",
-  }
-  return known[encoder]() if encoder in known else "unknown"
+  """What one frame becomes for the policy: 'N x D' where its encoder says so without being built (its Kind)."""
+  from roboshape import encoders  # pylint: disable=import-outside-toplevel
+  return encoders.tokens_per_frame(config, encoder)
 
 
 @dataclasses.dataclass

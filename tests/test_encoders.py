@@ -212,6 +212,26 @@ def test_a_new_encoders_module_is_all_the_config_check_and_stage_wiring_need(toy
                                                                      if s != "pretrain"))]
 
 
+def test_a_new_encoders_module_places_it_in_the_tables_the_verdict_and_the_gpu_projection(toy, monkeypatch):
+  # pylint: disable=import-outside-toplevel
+  import importlib
+  import os
+  from roboshape.eval import claims
+  from roboshape.eval import tables
+  assert tables.sort_encoders(("toy", "state", "savi", "dino", "toy+proprio")) == (
+      "dino", "savi", "state", "toy", "toy+proprio")                               # its Kind's order: after them
+  assert claims.global_encoders()[-1] == "toy" and claims.compared(("savi", "toy", "objects")) == ["toy", "objects"]
+  assert claims.object_centric() == "savi" and claims.privileged() == "state"
+  monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))   # whatever its import sets is undone after
+  monkeypatch.syspath_prepend(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks"))
+  gpu_scaleup = importlib.import_module("gpu_scaleup")
+  assert gpu_scaleup.tokens_per_frame(_toy_config(toy), "toy") == "4 x 3"
+  assert gpu_scaleup.tokens_per_frame(common.get_config("push", "objects", "small"), "objects") == "10 x 12"
+  with pytest.raises(ValueError, match="family 'global-ish' must be one of"):
+    encoders.Kind(name="bad", inputs=("image",), pretrain="", build=None, title="", description="",
+                  family="global-ish")
+
+
 @pytest.fixture()
 def cheap_xla():
   """A compile-bound test: XLA's cheap optimisation level while it runs."""

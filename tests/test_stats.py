@@ -167,7 +167,7 @@ def test_the_verdict_says_supports_contradicts_or_cannot_decide_from_the_cells()
       "about 71 rollouts per level per training seed (now 40; at least, as the variation between training seeds " \
       "is not counted)." in flat
   assert "it would be decided with about" in claim2.split("place, ")[1]
-  assert "R3M and DINO: no cell in this table (skipped or not run), so the claim is judged against AE only." in flat
+  assert "DINO and R3M: no cell in this table (skipped or not run), so the claim is judged against AE only." in flat
   assert "On push, pick and place a cell has one training seed" in flat
   # a table without SAVi decides nothing, and says why
   lonely = claims.answer(_loaded({("push", "ae"): dict(train=0.5, L1=0.5)}), ["push"], ["ae"], ["train", "L1"])
@@ -175,7 +175,7 @@ def test_the_verdict_says_supports_contradicts_or_cannot_decide_from_the_cells()
   # a table without a global encoder says they are absent, and judges against none of them
   alone = claims.verdict(claims.answer(_loaded({("push", "savi"): dict(train=0.5, L1=0.5)}), ["push"], ["savi"],
                                        ["train", "L1"]), ["push"], ["savi"])
-  assert "AE, R3M and DINO: no cell in this table (skipped or not run). This table cannot decide claim 1" in \
+  assert "DINO, R3M and AE: no cell in this table (skipped or not run). This table cannot decide claim 1" in \
       " ".join(alone.split()) and "judged against nothing" not in alone
 
 

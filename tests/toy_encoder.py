@@ -46,4 +46,5 @@ def check(config) -> None:
 
 KIND = encoders.register(encoders.Kind(
     name=NAME, inputs=("image",), pretrain="", build=_build, title="Toy",
-    description="each image quadrant's mean colour (a test encoder)", sections=("toy",), check=check))
+    description="each image quadrant's mean colour (a test encoder)", sections=("toy",), check=check,
+    family="global", order=50, tokens=lambda config: "4 x 3"))

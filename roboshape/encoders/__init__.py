@@ -86,6 +86,13 @@ class Kind:
       encoder under study stops the grid.
     slot_videos: its closed-loop videos also show its slot decomposition beside each frame
       (roboshape/eval/videos.py, SaviSlotVideo).
+    family: its part in the paper's question (FAMILIES): "object-centric", the representation under study whose
+      claims the verdict tests (roboshape/eval/claims.py); "global", what it is compared with in those claims;
+      "control", compared with it in the tables, not in the claims (e.g. ground-truth object tokens);
+      "privileged", the control that should succeed, named in the verdict.
+    order: its column's place in the tables (smaller first; the paper's order, then baselines and controls).
+    tokens: config -> "N x D", what one frame becomes for the policy, said without building the encoder (the GPU
+      benchmark's projection, benchmarks/gpu_scaleup.py); None: "unknown".
   """
   name: str
   inputs: Tuple[str, ...]
@@ -100,11 +107,19 @@ class Kind:
   available: Optional[Callable] = None
   baseline: bool = True
   slot_videos: bool = False
+  family: str = "global"
+  order: int = 100
+  tokens: Optional[Callable] = None
 
   def __post_init__(self):
     unknown = [k for k in self.inputs if k not in OBSERVATION_KEYS]
     if unknown or not self.inputs:
       raise ValueError(f"encoder {self.name!r}: inputs {self.inputs} must be a non-empty subset of {OBSERVATION_KEYS}")
+    if self.family not in FAMILIES:
+      raise ValueError(f"encoder {self.name!r}: family {self.family!r} must be one of {FAMILIES}")
+
+
+FAMILIES = ("object-centric", "global", "control", "privileged")
 
 
 _REGISTRY: Dict[str, Kind] = {}
@@ -137,6 +152,23 @@ def get(name: str) -> Kind:
     raise UserError(f"unknown encoder {name!r}; registered encoders: {', '.join(_REGISTRY)} "
                     "(add one as a module in roboshape/encoders/).")
   return _REGISTRY[name]
+
+
+def in_family(family: str) -> Tuple[str, ...]:
+  """The registered encoders of `family` (FAMILIES), in table order."""
+  return tuple(n for n in table_order() if _REGISTRY[n].family == family)
+
+
+def table_order() -> Tuple[str, ...]:
+  """Every registered encoder in the order the tables give their columns (Kind.order, then registration)."""
+  _load()
+  return tuple(sorted(_REGISTRY, key=lambda n: _REGISTRY[n].order))
+
+
+def tokens_per_frame(config, name: str) -> str:
+  """What one frame becomes for the policy of encoder `name`, "N x D" (Kind.tokens), or "unknown"."""
+  kind = get(name)
+  return kind.tokens(config) if kind.tokens else "unknown"
 
 
 def build_encoder(config, workdir: str):

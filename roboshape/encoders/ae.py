@@ -51,6 +51,11 @@ def _model(config):
   return ae.model_from_config(config)
 
 
+def _tokens(config) -> str:
+  from roboshape.models import ae  # pylint: disable=import-outside-toplevel
+  return f"1 x {ae.latent_size(config)}"
+
+
 encoders.register(encoders.Kind(
     name="ae", inputs=("image",), pretrain="roboshape.train.pretrain", build=_build, title="AE",
     description="a frame autoencoder with SAVi's CNN and decoder, pretrained like SAVi on the task's frames "
@@ -58,4 +63,4 @@ encoders.register(encoders.Kind(
     evaluator="roboshape.eval.reconstruction",
     model=encoders.PretrainModel(build=_model, selection=encoders.Selection("recon_mse", False,
                                                                              "reconstruction MSE")),
-    sections=("pretrain", "ae"), check=check))
+    sections=("pretrain", "ae"), check=check, order=2, tokens=_tokens))

@@ -132,4 +132,5 @@ def _build(config, workdir: str):
 encoders.register(encoders.Kind(
     name="objects", inputs=("image", "segmentation"), pretrain="", build=_build, title="Objects",
     description="ground-truth object tokens from the segmentation, one per id (control: the upper bound of SAVi); "
-                "reads depth too with env.depth"))
+                "reads depth too with env.depth", family="control", order=4,
+    tokens=lambda config: f"{len(token_ids(config.env.max_distractors))} x {DIM}"))

@@ -80,4 +80,5 @@ def _build(config, workdir: str):
 encoders.register(encoders.Kind(
     name="poses", inputs=("state",), pretrain="", build=_build, title="Poses",
     description="one token per object from the simulator's exact poses, an unordered set without ids (control: "
-                "between the state token and the objects tokens)"))
+                "between the state token and the objects tokens)", family="control", order=5,
+    tokens=lambda config: f"{3 + int(config.env.max_distractors)} x {DIM}"))

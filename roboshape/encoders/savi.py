@@ -198,4 +198,5 @@ encoders.register(encoders.Kind(
     description="slot attention for video, pretrained on the task's frames (K slots per frame)",
     evaluator="roboshape.eval.slots",
     model=encoders.PretrainModel(build=_model, selection=encoders.Selection("fg_ari", True, "FG-ARI")),
-    sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True))
+    sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True, family="object-centric", order=3,
+    tokens=lambda config: f"{config.savi.num_slots} x {config.savi.slot_size}"))

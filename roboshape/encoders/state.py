@@ -100,4 +100,4 @@ def _build(config, workdir: str):
 encoders.register(encoders.Kind(
     name="state", inputs=("state",), pretrain="", build=_build, title="State",
     description="the privileged simulator state as one token (control: the upper bound)",
-    sections=("state",), check=check))
+    sections=("state",), check=check, family="privileged", order=6, tokens=lambda config: f"1 x {TOKEN_DIM}"))

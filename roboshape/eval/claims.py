@@ -1,6 +1,6 @@
 """The paper's two claims, answered from a report's cells with 95% intervals (roboshape/eval/stats.py).
 
-  Claim 1: an object-centric encoder (SAVi) succeeds more often than global ones (AE, R3M, DINO).
+  Claim 1: an object-centric encoder (SAVi) succeeds more often than global ones (the family "global": DINO, R3M, AE).
   Claim 2: it loses less under distribution shift than they do.
 
 `answer` estimates, per task: each encoder's success at each level; SAVi's success minus each other encoder's at
@@ -28,16 +28,16 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from roboshape import encoders as registry
 from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.eval import paper
 from roboshape.eval import stats
 from roboshape.eval import tables
 
-OBJECT_CENTRIC = "savi"
-GLOBAL = ("ae", "r3m", "dino")
-CONTROLS = ("objects",)            # compared with SAVi in the tables, not part of the claims
-STATE = "state"                    # the privileged state: the control that should succeed, named in claim 1
+# The encoders' parts in the claims come from the registry (roboshape.encoders.Kind.family): `object_centric()`
+# the encoder under study, `global_encoders()` what the claims compare it with, `controls()` what the tables compare
+# it with, not part of the claims, and `privileged()` the control that should succeed, named in claim 1.
 LEVELS_MEAN = "mean"               # the column of a statistic averaged over the levels (or the shift levels)
 OUTCOMES = {1: "supports", -1: "contradicts", 0: "cannot decide"}
 OPTION_OUTCOMES = {1: "helps", -1: "hurts", 0: "not shown to differ"}
@@ -74,9 +74,25 @@ class Answer:
     return tuple(l for l in self.levels if l != stats.TRAIN) if stats.TRAIN in self.levels else ()
 
 
+def object_centric() -> str:
+  return registry.in_family("object-centric")[0]
+
+
+def global_encoders() -> Tuple[str, ...]:
+  return registry.in_family("global")
+
+
+def controls() -> Tuple[str, ...]:
+  return registry.in_family("control")
+
+
+def privileged() -> str:
+  return registry.in_family("privileged")[0]
+
+
 def compared(encoders: Sequence[str]) -> List[str]:
   """The encoders SAVi is compared with in the tables: the global ones, then the controls, as present."""
-  return [e for e in GLOBAL + CONTROLS if e in encoders]
+  return [e for e in global_encoders() + controls() if e in encoders]
 
 
 def answer(loaded: Dict[Tuple[str, str], Dict], tasks: Sequence[str], encoders: Sequence[str],
@@ -100,13 +116,13 @@ def answer(loaded: Dict[Tuple[str, str], Dict], tasks: Sequence[str], encoders: 
       if out.task_shifts[task]:
         out.robustness[(task, encoder, LEVELS_MEAN)] = stats.robustness(c, out.task_shifts[task], draws, seed)
   for task in tasks:
-    savi = cells.get((task, OBJECT_CENTRIC))
+    savi = cells.get((task, object_centric()))
     for other in compared(encoders):
       c = cells.get((task, other))
       if savi is None or c is None:
         continue
       out.pairs.update({(task, other, l): e for l, e in _by_level(savi, c, levels, draws, seed).items()})
-      if other in GLOBAL and out.task_shifts[task] and all(stats.TRAIN in x.levels for x in (savi, c)):
+      if other in global_encoders() and out.task_shifts[task] and all(stats.TRAIN in x.levels for x in (savi, c)):
         out.gaps[(task, other)] = stats.robustness_difference(savi, c, out.task_shifts[task], draws, seed)
     for column, plain in with_options(encoders):
       c, base = cells.get((task, column)), cells.get((task, plain))
@@ -200,7 +216,7 @@ def robustness_table(a: Answer, task: str, encoders: Sequence[str]) -> str:
                                       for l in columns]
           for e in encoders if (task, e, LEVELS_MEAN) in a.robustness]
   rows += [[f"SAVi − {tables.encoder_name(o)}"] + ["" for _ in a.shifts] + [interval(a.gaps[(task, o)], True)]
-           for o in GLOBAL if (task, o) in a.gaps]
+           for o in global_encoders() if (task, o) in a.gaps]
   if not rows:
     return ""
   return _table([""] + list(a.shifts) + ["mean over " + ", ".join(a.task_shifts[task])], rows)
@@ -254,9 +270,9 @@ def _level_mean(a: Answer, task: str, encoder: str, other: str) -> float:
 
 def _claim1(a: Answer, task: str, other: str) -> Tuple[int, str]:
   e, name = a.pairs[(task, other, LEVELS_MEAN)], tables.encoder_name(other)
-  means = f"SAVi {_level_mean(a, task, OBJECT_CENTRIC, other):.2f}, {name} {_level_mean(a, task, other, other):.2f}"
+  means = f"SAVi {_level_mean(a, task, object_centric(), other):.2f}, {name} {_level_mean(a, task, other, other):.2f}"
   text = f"{task}, SAVi − {name}: {interval(e, signed=True)} ({means} over the levels): {OUTCOMES[e.side]}"
-  return e.side, text + _undecided(a, e, task, OBJECT_CENTRIC, other)
+  return e.side, text + _undecided(a, e, task, object_centric(), other)
 
 
 def _undecided(a: Answer, e: stats.Estimate, task: str, first: str, second: str) -> str:
@@ -275,7 +291,7 @@ def _claim2(a: Answer, task: str, other: str) -> Tuple[int, str]:
   if e.defined:
     return e.side, text + _needed(e)
   why = []
-  for encoder in (OBJECT_CENTRIC, other):
+  for encoder in (object_centric(), other):
     r = a.robustness[(task, encoder, LEVELS_MEAN)]
     if math.isnan(r.value):
       why.append(f"{tables.encoder_name(encoder)} never succeeds at the train level, so its robustness is undefined")
@@ -296,15 +312,16 @@ def _control(a: Answer, task: str) -> str:
   between encoders is read beside how far both fall short of it), with the paper's SAVi over the same levels where
   the paper has them (a difference between failing policies reads otherwise than one between the paper's)."""
   text = []
-  if (task, CONTROLS[0], LEVELS_MEAN) in a.pairs:
+  if (task, controls()[0], LEVELS_MEAN) in a.pairs:
     text.append(f"On {task} the ground-truth object tokens (the control) succeed "
-                f"{_level_mean(a, task, CONTROLS[0], CONTROLS[0]):.2f} over the levels, SAVi − Objects "
-                f"{interval(a.pairs[(task, CONTROLS[0], LEVELS_MEAN)], signed=True)}.")
-  levels = [l for l in a.levels if (task, STATE, l) in a.success and (task, OBJECT_CENTRIC, l) in a.success]
+                f"{_level_mean(a, task, controls()[0], controls()[0]):.2f} over the levels, SAVi − Objects "
+                f"{interval(a.pairs[(task, controls()[0], LEVELS_MEAN)], signed=True)}.")
+  levels = [l for l in a.levels if (task, privileged(), l) in a.success and (task, object_centric(), l) in a.success]
   if levels:
-    state, savi = (float(np.mean([a.success[(task, e, l)].value for l in levels])) for e in (STATE, OBJECT_CENTRIC))
+    state, savi = (float(np.mean([a.success[(task, e, l)].value for l in levels]))
+                   for e in (privileged(), object_centric()))
     published = paper.TABLES.get(task, {})
-    theirs = [published[(l, OBJECT_CENTRIC)][0] for l in levels if (l, OBJECT_CENTRIC) in published]
+    theirs = [published[(l, object_centric())][0] for l in levels if (l, object_centric()) in published]
     beside = f" (the paper's SAVi {np.mean(theirs):.2f})" if len(theirs) == len(levels) else ""
     text.append(f"The privileged state (the control that should succeed) succeeds {state:.2f} over the same "
                 f"levels on {task}, SAVi {savi:.2f}{beside}.")
@@ -315,7 +332,7 @@ def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int
            judge, keyed) -> str:
   """One claim's paragraph: its statement, how it is judged, a sentence per comparison, and what the table says per
   task."""
-  present = [o for o in GLOBAL if o in encoders and any((t, o) in a.cells for t in tasks)]
+  present = [o for o in global_encoders() if o in encoders and any((t, o) in a.cells for t in tasks)]
   lines, by_task = [], {}
   for task in tasks:
     sides = []
@@ -326,9 +343,9 @@ def _claim(a: Answer, tasks: Sequence[str], encoders: Sequence[str], number: int
         lines.append(text + ".")
     if sides:
       by_task[task] = -1 if -1 in sides else 1 if all(s == 1 for s in sides) else 0
-  absent = [tables.encoder_name(o) for o in GLOBAL if o not in present]
+  absent = [tables.encoder_name(o) for o in global_encoders() if o not in present]
   one_seed = [t for t in tasks if t in by_task and any(
-      len(a.cells[(t, e)].train_seeds) == 1 for e in (OBJECT_CENTRIC, *present) if (t, e) in a.cells)]
+      len(a.cells[(t, e)].train_seeds) == 1 for e in (object_centric(), *present) if (t, e) in a.cells)]
   text = [f"**Claim {number}: {title}**", judged] + lines
   if absent:
     judged_against = (f", so the claim is judged against {_names([tables.encoder_name(o) for o in present])} only"

@@ -11,13 +11,13 @@ or not evaluated at that level) prints as "-".
 """
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
+from roboshape import encoders as registry
 from roboshape.encoders import columns
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
 
 Cell = Optional[Tuple[float, float]]
 
-ENCODER_ORDER = ("dino", "r3m", "ae", "savi", "objects", "state")   # the paper's order, then baseline and controls
 _ROW_NAMES_MD = {"train": "none"}
 _ROW_NAMES_TEX = {"train": r"$\emptyset$"}
 
@@ -37,13 +37,15 @@ def level_name(level: str) -> str:
 
 
 def sort_encoders(encoders: Sequence[str]) -> Tuple[str, ...]:
-  """Columns in the paper's order (DINO, R3M, SAVi, with AE before SAVi and the controls after it), each encoder's
-  columns with options right after its plain one in the given order, others after them in the given order."""
+  """Columns in the registry's table order (roboshape.encoders.table_order: the paper's DINO, R3M, SAVi, with AE
+  before SAVi and the controls after it), each encoder's columns with options right after its plain one in the
+  given order, names the registry does not know after them in the given order."""
+  order = registry.table_order()
   def base(name: str) -> str:
     return name.split(columns.SEPARATOR)[0]
-  known = sorted((e for e in encoders if base(e) in ENCODER_ORDER),
-                 key=lambda e: (ENCODER_ORDER.index(base(e)), e != base(e), list(encoders).index(e)))
-  return tuple(known + [e for e in encoders if base(e) not in ENCODER_ORDER])
+  known = sorted((e for e in encoders if base(e) in order),
+                 key=lambda e: (order.index(base(e)), e != base(e), list(encoders).index(e)))
+  return tuple(known + [e for e in encoders if base(e) not in order])
 
 
 def _best(cells: Mapping, level: str, encoders: Sequence[str]) -> set:
