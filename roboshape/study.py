@@ -17,6 +17,8 @@ workdir and writes one row to <study>/probes.csv (replacing a row of the same na
   reached                         per milestone of the task, how many of those rollouts reached it
   val_mse_best, best_step, val_mse_last   the policy's validation action MSE (roboshape/train/bc.py), seed 0
   fg_ari                          the selected SAVi's final validation FG-ARI, where the run pretrained one
+  cube_iou, cube_found            the same SAVi's best slot IoU with the cube and the share of frames in which a
+                                  slot found it (roboshape/eval/slots.py), where its log has them
   closest_cm, first_move          medians over those rollouts of the tool centre point's closest distance to the
                                   cube and of the first actions' length (roboshape/eval/closed_loop.py); empty for
                                   a log that predates them
@@ -69,7 +71,7 @@ DIAGNOSED = ("closest_cm", "first_move", "first_move_offline", "first_move_exper
              "mse_lift", "mse_first")
 COLUMNS = (("probe", "task", "encoder", "variant", "changed", "rollouts", "successes", "success", "reached",
             "val_mse_best", "best_step", "val_mse_last", "fg_ari") + tuple(f"{s}_s" for s in TIMED)
-           + ("cores", "core_hours") + DIAGNOSED)
+           + ("cores", "core_hours") + DIAGNOSED + ("cube_iou", "cube_found"))
 
 
 def _flatten(tree, prefix: str = "") -> Dict:
@@ -131,8 +133,9 @@ def _val_metrics(workdir: str) -> List[Dict]:
   return []
 
 
-def _fg_ari(workdir: str) -> str:
-  """The served SAVi's final validation FG-ARI: the selected seed's (savi/selected.json), else the single run's."""
+def _fg_ari(workdir: str, key: str = "fg_ari") -> str:
+  """The served SAVi's final validation FG-ARI (or another of its metrics, `key`): the selected seed's
+  (savi/selected.json), else the single run's; "" where the run has no SAVi or its log lacks the metric."""
   for rel in (f"savi/{rundir.SELECTION_FILE}", "savi/val_metrics.json"):
     path = os.path.join(workdir, rel)
     if not os.path.exists(path):
@@ -141,8 +144,8 @@ def _fg_ari(workdir: str) -> str:
       data = json.load(f)
     if isinstance(data, dict):
       data = [s for s in data.get("seeds", []) if s.get("seed") == data.get("selected_seed")]
-    if data and "fg_ari" in data[-1]:
-      return f"{data[-1]['fg_ari']:.3f}"
+    if data and key in data[-1]:
+      return f"{data[-1][key]:.3f}"
   return ""
 
 
@@ -200,6 +203,7 @@ def probe_row(workdir: str, name: str, baseline: Optional[Dict] = None) -> Dict:
              cores=cores, core_hours=f"{core_seconds / 3600:.2f}")
   row.update({f"{s}_s": "" if v is None else f"{v:.0f}" for s, v in seconds.items()})
   row.update(_diagnosis(workdir, rollouts))
+  row.update(cube_iou=_fg_ari(workdir, "cube_iou"), cube_found=_fg_ari(workdir, "cube_found"))
   return row
 
 
@@ -222,12 +226,12 @@ def write_rows(study: str, rows: List[Dict]) -> None:
 def table(rows: List[Dict]) -> str:
   """The README's markdown table of `rows` (the CSV's rows, as strings)."""
   head = ("| probe | task x encoder | changed from `:small` | train success | milestones reached | val action MSE "
-          "best (step) / last | FG-ARI | train_policy + evaluate (s) | core-h |")
+          "best (step) / last | FG-ARI (cube IoU, found) | train_policy + evaluate (s) | core-h |")
   lines = [head, "|" + " --- |" * head.count(" | ") + " --- |"]
   for r in rows:
     lines.append(f"| {r['probe']} | {r['task']} x {r['encoder']} | {r['changed']} | "
                  f"{r['success']} ({r['successes']}/{r['rollouts']}) | {r['reached']} | "
-                 f"{r['val_mse_best']} ({r['best_step']}) / {r['val_mse_last']} | {r['fg_ari'] or '-'} | "
+                 f"{r['val_mse_best']} ({r['best_step']}) / {r['val_mse_last']} | {_savi_scores(r)} | "
                  f"{r['train_policy_s']} + {r['evaluate_s']} | {r['core_hours']} |")
   diagnosed = [r for r in rows if any(r.get(k) for k in DIAGNOSED)]
   if diagnosed:
@@ -244,6 +248,15 @@ def table(rows: List[Dict]) -> str:
                    f"{v['first_move_offline']} / {v['first_move_expert']} | {v['mse_approach']} / "
                    f"{v['mse_grasp']} / {v['mse_lift']} / {v['mse_first']} |")
   return "\n".join(lines)
+
+
+def _savi_scores(row: Dict) -> str:
+  """The table's FG-ARI cell: "-" without a SAVi, and its cube IoU and cube-found share where measured."""
+  if not row.get("fg_ari"):
+    return "-"
+  if not row.get("cube_iou"):
+    return row["fg_ari"]
+  return f"{row['fg_ari']} (cube {row['cube_iou']}, found {float(row['cube_found']):.0%})"
 
 
 def _readme(study: str) -> str:

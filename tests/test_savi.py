@@ -541,6 +541,9 @@ def test_a_pooled_model_is_evaluated_at_the_segmentation_resolution(tmp_path):
   result = slot_eval.evaluate(oracle, None, [{"image": frames, "segmentation": seg}], frames=6, pool=2)
   assert result["fg_ari"] == pytest.approx(1.0)
   assert result["recon_mse"] == pytest.approx(0.0, abs=1e-10)
+  # each task object in view has a slot of its own; the hand is in no frame
+  assert (result["cube_iou"], result["cube_found"], result["goal_iou"]) == (1.0, 1.0, 1.0)
+  assert np.isnan(result["hand_iou"])
   config.savi.pool = 3
   with pytest.raises(UserError, match="savi.pool"):
     pretrain.validate_config(config)
@@ -581,6 +584,19 @@ def test_fg_ari_ignores_background_and_permutes_slots():
       _ari_by_pair_counting(seg[seg > 0], slot_of[seg > 0]))
   merged = np.moveaxis(np.eye(3)[np.zeros_like(slot_of)], -1, 1)             # one slot takes everything
   assert decomposition.fg_ari(seg, merged) == pytest.approx(0.0)
+
+
+def test_the_best_slot_iou_of_an_object_is_per_frame_and_nan_where_it_is_out_of_view():
+  seg = np.zeros((3, 2, 4), np.uint8)
+  seg[0, 0, 2:] = 3                    # frame 0: the cube's 2 pixels, alone in slot 1
+  seg[1, 0, 2:] = 3                    # frame 1: they share slot 1 with 2 table pixels
+  slot_of = np.zeros((3, 2, 4), int)
+  slot_of[0, 0, 2:] = 1
+  slot_of[1, 0, 2:] = slot_of[1, 1, 2:] = 1
+  masks = np.moveaxis(np.eye(2)[slot_of], -1, 1)                             # [T, K, H, W] one-hot
+  iou = decomposition.best_slot_iou(seg, masks, 3)
+  np.testing.assert_allclose(iou[:2], [1.0, 0.5])
+  assert np.isnan(iou[2])                                                     # frame 2: no cube in view
 
 
 def test_per_frame_fg_ari_forgives_slots_that_swap_objects_between_frames():

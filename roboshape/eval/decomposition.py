@@ -83,6 +83,25 @@ def matched_miou(segmentation: np.ndarray, masks: np.ndarray, background_ids: Se
   return float(iou[rows, cols].sum() / ids.size)
 
 
+def best_slot_iou(segmentation: np.ndarray, masks: np.ndarray, object_id: int) -> np.ndarray:
+  """Per frame, the best IoU of any one slot's mask with object `object_id`'s mask: float [T], NaN in the frames
+  where the object is not in view. segmentation int [T, H, W]; masks [T, K, H, W] (argmax over K gives each pixel's
+  slot). A small object that no slot holds on its own scores its share of the slot that swallows it."""
+  segmentation = np.asarray(segmentation)
+  masks = np.asarray(masks)
+  num_slots = masks.shape[-3]
+  pred = np.argmax(masks, axis=-3)                                          # [T, H, W]
+  truth = (segmentation == object_id).reshape(len(segmentation), -1)        # [T, P]
+  slots = pred.reshape(len(pred), 1, -1) == np.arange(num_slots)[None, :, None]   # [T, K, P]
+  inter = (slots & truth[:, None]).sum(-1)
+  union = (slots | truth[:, None]).sum(-1)
+  best = (inter / np.maximum(union, 1)).max(-1)
+  return np.where(truth.any(-1), best, np.nan)
+
+
+FOUND_IOU = 0.5     # a slot with at least this IoU with an object's mask has found it
+
+
 def upsample_masks(masks: np.ndarray, factor: int) -> np.ndarray:
   """Nearest-neighbour upsampling of masks [..., h, w] by an integer factor -> [..., h * factor, w * factor] (the
   masks of a model of pooled frames, at the segmentation's resolution)."""

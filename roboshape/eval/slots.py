@@ -19,6 +19,8 @@ from roboshape.eval import decomposition
 from roboshape.models import savi
 from roboshape.train import pretrain
 
+# The task objects whose masks a slot should find on its own, by name: their segmentation ids.
+OBJECTS = {"cube": ids.CUBE, "goal": ids.GOAL, "hand": ids.HAND}
 # (params, video uint8 [B, T, H, W, 3]) -> dict(masks [B, T, K, h, w], recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3])
 Decompose = Callable[[object, np.ndarray], Dict[str, np.ndarray]]
 
@@ -31,6 +33,9 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
 
   fg_ari scores each video as one clustering, so a slot that changes object between frames counts against it (the
   bar); fg_ari_frames is the mean over frames of each frame's own FG-ARI, the decomposition without that consistency.
+  Per task object (OBJECTS: the cube, the target or bin, the hand), <name>_iou is the best IoU of any one slot's mask
+  with the object's mask, averaged over the frames that show it, which FG-ARI (dominated by the large masks) hides;
+  cube_found is the share of those frames in which one slot covers the cube with IoU >= decomposition.FOUND_IOU.
 
   Masks of a pooled model (savi.pool = `pool`) are compared at the segmentation's resolution, each mask pixel
   repeated pool x pool; the reconstruction error is against the pooled frames.
@@ -39,11 +44,14 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
   of the first episode's first `figure_frames` frames to `figure_path` when given.
   """
   aris, frame_aris, ious, mses = [], [], [], []
+  best = {name: [] for name in OBJECTS}
   for i, episode in enumerate(episodes):
     video = episode["image"][:frames]
     out = jax.device_get(decompose(params, video[None]))
     seg = ids.robot_as_one(episode["segmentation"][:frames])   # the robot is one object
     masks = decomposition.upsample_masks(out["masks"][0], pool)         # at the segmentation's resolution
+    for name, object_id in OBJECTS.items():                             # the hand apart from the arm
+      best[name].append(decomposition.best_slot_iou(episode["segmentation"][:frames], masks, object_id))
     aris.append(decomposition.fg_ari(seg, masks, background_ids))
     frame_aris.extend(decomposition.fg_ari(seg[t:t + 1], masks[t:t + 1], background_ids) for t in range(len(seg)))
     ious.append(decomposition.matched_miou(seg, masks, background_ids))
@@ -52,12 +60,25 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
     if i == 0 and figure_path:
       n = figure_frames
       decomposition.decomposition_figure(pooled[:n], out["recon"][0, :n], out["rgb"][0, :n], out["masks"][0, :n],
-                                         figure_path, title)
+                                         figure_path, _with_cube(title, best["cube"][0][:n]))
+  best = {name: np.concatenate(v) if v else np.zeros(0) for name, v in best.items()}
+  seen = {name: v[~np.isnan(v)] for name, v in best.items()}
   with np.errstate(all="ignore"):
-    return {"fg_ari": float(np.nanmean(aris)) if aris else float("nan"),
+    objects = {f"{name}_iou": float(v.mean()) if v.size else float("nan") for name, v in seen.items()}
+    objects["cube_found"] = (float(np.mean(seen["cube"] >= decomposition.FOUND_IOU)) if seen["cube"].size
+                             else float("nan"))
+    return {**objects, "fg_ari": float(np.nanmean(aris)) if aris else float("nan"),
             "fg_ari_frames": float(np.nanmean(frame_aris)) if frame_aris else float("nan"),
             "miou": float(np.nanmean(ious)) if ious else float("nan"),
             "recon_mse": float(np.mean(mses)) if mses else float("nan")}
+
+
+def _with_cube(title: str, cube_iou: np.ndarray) -> str:
+  """The figure's title with its frames' best cube IoU (or that the cube is not in view)."""
+  seen = cube_iou[~np.isnan(cube_iou)]
+  said = (f"cube: best slot IoU {seen.mean():.2f} (found in {int(np.sum(seen >= decomposition.FOUND_IOU))} of "
+          f"{seen.size} frames)" if seen.size else "cube not in view")
+  return f"{title}; {said}" if title else said
 
 
 def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str, np.ndarray]]) -> pretrain.Validation:
@@ -74,6 +95,7 @@ def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str,
       run=lambda params, step: evaluate(decompose, params, episodes[:ec.episodes], ec.frames, own.background_ids,
                                         model.input_pool, figure(step),
                                         own.figure_frames, f"{config.name} step {step}"),
-      keys=("fg_ari", "fg_ari_frames", "miou"), ylim=(None, 1.0),
+      keys=("fg_ari", "fg_ari_frames", "miou", "cube_iou", "cube_found"), ylim=(None, 1.0),
       describe=lambda r: (f"val FG-ARI {r['fg_ari']:.3f} (per frame {r['fg_ari_frames']:.3f}) mIoU "
-                          f"{r['miou']:.3f} recon MSE {r['recon_mse']:.5f}"))
+                          f"{r['miou']:.3f} cube IoU {r['cube_iou']:.3f} (found in {r['cube_found']:.0%} of frames) "
+                          f"recon MSE {r['recon_mse']:.5f}"))
