@@ -255,6 +255,9 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       # one more token per frame with the robot's own pose (tool centre point, finger opening) from
       # observation/state (roboshape/encoders/proprio.py); off in the paper, which uses no proprioception
       proprio=False,
+      # with proprio: each token also carries its object's position relative to the tool centre point, for the
+      # encoders whose tokens say where their object is (roboshape/encoders/proprio.py)
+      hand_relative=False,
       cache_dtype="float32",    # dtype of the cached encoder features ("float16" halves the cache)
       # () one policy trained with config.seed, in <workdir>/policy/; (s1, s2, ...) one policy per training seed, in
       # policy/seed_<s>/, each evaluated on the same evaluation seeds; tables then give mean ± std over them

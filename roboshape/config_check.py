@@ -74,6 +74,7 @@ _RANGES = {
         Number("policy.train.grad_clip", 0.0, "the global gradient-norm clip", low_ok=False),
         Number("policy.eval.noise", 0.0, "the sampling noise, a fraction of the mode's scale"),
         Flag("policy.proprio", "a proprioception token per frame"),
+        Flag("policy.hand_relative", "each token's object relative to the hand (needs policy.proprio)"),
         Ints("policy.train_seeds", 0, "one policy per training seed; (): one policy trained with config.seed",
              empty_ok=True, distinct=True),
     ),
@@ -273,6 +274,19 @@ def check_single(config) -> None:
       _SHARED_SECTIONS[section](config)
   if kind.check is not None:
     kind.check(config)
+  _check_hand_relative(config, kind)
+
+
+def _check_hand_relative(config, kind: encoders.Kind) -> None:
+  """policy.hand_relative needs the hand's pose (policy.proprio) and an encoder whose tokens say where their objects
+  are (Kind.points)."""
+  if not config.policy.get("hand_relative", False):
+    return
+  if not config.policy.proprio:
+    raise UserError("policy.hand_relative=True needs the tool centre point: set policy.proprio=True too.")
+  why = kind.points(config) if kind.points else f"the {kind.name} encoder's tokens do not say where their objects are"
+  if why:
+    raise UserError(f"policy.hand_relative=True: {why}; or leave policy.hand_relative False.")
 
 
 def check(config) -> None:

@@ -5,6 +5,7 @@ import pytest
 from configs import common
 from roboshape import config_check
 from roboshape import encoders
+from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.encoders import state as state_encoder
 from roboshape.envs import state as state_lib
@@ -312,3 +313,51 @@ def test_pose_tokens_are_the_objects_exact_positions_in_decimetres_and_absent_di
   np.testing.assert_allclose(tokens[2], np.r_[1, 10 * np.array(goal), 0, 0, colour(palettes.GOAL_COLOR)], rtol=1e-6)
   np.testing.assert_allclose(tokens[3], np.r_[1, 2, 2, 0.3, 0.25, 0, colour(poses.DISTRACTOR_COLOUR)], rtol=1e-6)
   assert not tokens[4:].any()                               # padding: all zero, masked out by the trunk
+
+
+def test_hand_relative_tokens_carry_each_objects_position_from_the_hand_and_need_proprio_and_positions():
+  from roboshape.encoders import poses  # pylint: disable=import-outside-toplevel
+  from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
+  config = common.get_config("pick", "poses", "tiny")
+  columns.apply(config, "poses+proprio+rel")
+  config_check.check(config)
+  assert columns.of_config(config) == "poses+proprio+rel"
+  plain = encoders.get("poses").build(config, "")
+  enc = encoders.build_encoder(config, "")
+  assert (enc.num_tokens, enc.token_dim) == (plain.num_tokens + 1, max(poses.DIM + 3, proprio.SIZE) + 1)
+  assert "+relative:" in enc.identity
+  cuts = state_lib.slices()
+  state = np.zeros((1, 1, state_lib.DIM), np.float32)
+  state[..., cuts["tcp_pos"]], state[..., cuts["cube_pos"]] = (0.1, 0.0, 0.2), (0.05, 0.1, 0.02)
+  tokens = np.asarray(enc.encode_batch({"state": state}))[0, 0]
+  base = np.asarray(plain.encode_batch({"state": state}))[0, 0]
+  np.testing.assert_allclose(tokens[:plain.num_tokens, :poses.DIM], base)
+  relative = tokens[:plain.num_tokens, poses.DIM:poses.DIM + 3]
+  np.testing.assert_allclose(relative[0], 0, atol=1e-6)                          # the hand from the hand
+  np.testing.assert_allclose(relative[1], [-0.5, 1.0, -1.8], rtol=1e-5)          # the cube, in units of 0.1 m
+  assert not tokens[4:plain.num_tokens].any()                                     # absent distractors stay all zero
+  config.policy.proprio = False
+  with pytest.raises(UserError, match=r"^policy.hand_relative=True needs the tool centre point"):
+    config_check.check(config)
+  savi = common.get_config("pick", "savi", "tiny")
+  columns.apply(savi, "savi+proprio+rel")
+  with pytest.raises(UserError, match="the savi encoder's tokens do not say where their objects are"):
+    config_check.check(savi)
+  objects = common.get_config("pick", "objects", "tiny")
+  columns.apply(objects, "objects+proprio+rel")
+  with pytest.raises(UserError, match="only with depth: set env.depth=True"):
+    config_check.check(objects)
+
+
+def test_an_object_tokens_point_is_its_centroid_at_its_depth_through_the_camera():
+  from roboshape.encoders import objects  # pylint: disable=import-outside-toplevel
+  from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
+  world = np.array([[0.05, -0.1, 0.02], [0.0, 0.0, 0.3]], np.float32)
+  row, col, depth = camera.project(world)
+  tokens = np.zeros((2, objects.DIM), np.float32)
+  cuts = objects.slices()
+  tokens[:, 0], tokens[:, cuts["centroid"]], tokens[:, cuts["depth"]] = 1, np.stack([row, col], -1), depth[:, None]
+  tokens[1, cuts["depth"]] = 0.0                                                  # no depth: no point
+  where, valid = objects.points(tokens)
+  np.testing.assert_allclose(np.asarray(where)[0], world[0], atol=1e-5)
+  assert np.asarray(valid).tolist() == [True, False]

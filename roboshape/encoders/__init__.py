@@ -93,6 +93,8 @@ class Kind:
     order: its column's place in the tables (smaller first; the paper's order, then baselines and controls).
     tokens: config -> "N x D", what one frame becomes for the policy, said without building the encoder (the GPU
       benchmark's projection, benchmarks/gpu_scaleup.py); None: "unknown".
+    points: config -> "" when the encoder built for `config` says where each token's object is
+      (FrozenEncoder.points, which policy.hand_relative needs), else why not; None: its tokens never do.
   """
   name: str
   inputs: Tuple[str, ...]
@@ -110,6 +112,7 @@ class Kind:
   family: str = "global"
   order: int = 100
   tokens: Optional[Callable] = None
+  points: Optional[Callable] = None
 
   def __post_init__(self):
     unknown = [k for k in self.inputs if k not in OBSERVATION_KEYS]
@@ -173,9 +176,10 @@ def tokens_per_frame(config, name: str) -> str:
 
 def build_encoder(config, workdir: str):
   """The `FrozenEncoder` of `config.encoder`, built by its registered `build`; with `config.policy.proprio`, its
-  tokens followed by a proprioception token per frame (roboshape/encoders/proprio.py)."""
+  tokens followed by a proprioception token per frame, and with `config.policy.hand_relative` each token's object
+  relative to the hand (roboshape/encoders/proprio.py)."""
   encoder = get(config.encoder).build(config, workdir)
   if config.get("policy", {}).get("proprio", False):
     from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
-    encoder = proprio.with_proprio(encoder)
+    encoder = proprio.with_proprio(encoder, hand_relative=bool(config.policy.get("hand_relative", False)))
   return encoder

@@ -36,6 +36,8 @@ class Option:
 OPTIONS = {o.name: o for o in (
     Option("proprio", (("policy.proprio", True),),
            "the robot's own pose as one more token per frame (roboshape/encoders/proprio.py)"),
+    Option("rel", (("policy.hand_relative", True),),
+           "with proprio: each token's object relative to the hand (roboshape/encoders/proprio.py)"),
 )}
 
 

@@ -115,6 +115,17 @@ def _step(kept, params, carry, obs):
   return tokens(obs["image"], obs["segmentation"], obs.get("depth"))[:, list(kept)], carry
 
 
+def points(tokens):
+  """tokens [..., N, DIM] -> (world points [..., N, 3], valid [..., N]): each object's mask centroid at its mean
+  depth, through the front camera's calibration (roboshape/envs/camera.py); valid where the object is in view and
+  has a depth (FrozenEncoder.points; a mask's centroid is its pixels', not the object's centre)."""
+  from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
+  cuts = slices()
+  centroid, depth = tokens[..., cuts["centroid"]], tokens[..., cuts["depth"].start]
+  where = camera.unproject(centroid[..., 0], centroid[..., 1], depth)
+  return where, (tokens[..., cuts["present"].start] > 0) & (depth > 0)
+
+
 def _build(config, workdir: str):
   """The encoder: the tokens of `token_ids(config.env.max_distractors)` (config None: every id); it reads depth too
   when `config.env.depth` is true (config None: no depth)."""
@@ -126,11 +137,14 @@ def _build(config, workdir: str):
   layout = hashlib.sha1(f"ids {kept}: {describe()}".encode()).hexdigest()[:12]
   return FrozenEncoder(name="objects", params={}, step=functools.partial(_step, kept),
                        init_state=lambda batch_size: (), num_tokens=len(kept), token_dim=DIM,
-                       identity=f"objects:{layout}:{'+'.join(inputs)}", inputs=inputs)
+                       identity=f"objects:{layout}:{'+'.join(inputs)}", inputs=inputs,
+                       points=points if depth else None)
 
 
 encoders.register(encoders.Kind(
     name="objects", inputs=("image", "segmentation"), pretrain="", build=_build, title="Objects",
     description="ground-truth object tokens from the segmentation, one per id (control: the upper bound of SAVi); "
                 "reads depth too with env.depth", family="control", order=4,
-    tokens=lambda config: f"{len(token_ids(config.env.max_distractors))} x {DIM}"))
+    tokens=lambda config: f"{len(token_ids(config.env.max_distractors))} x {DIM}",
+    points=lambda config: "" if config.env.get("depth", False) else (
+        "its tokens place objects in 3-D only with depth: set env.depth=True (and collect the dataset with it)")))

@@ -60,6 +60,11 @@ def tokens(state, max_distractors: int):
   return jnp.stack(rows, axis=1)
 
 
+def points(tokens):
+  """tokens [..., N, DIM] -> (world points [..., N, 3] in metres, valid [..., N]) (FrozenEncoder.points)."""
+  return tokens[..., 1:4] / 10.0, tokens[..., 0] > 0
+
+
 def _step(max_distractors, params, carry, obs):
   del params
   return tokens(obs["state"], max_distractors), carry
@@ -74,11 +79,12 @@ def _build(config, workdir: str):
   layout = hashlib.sha1(f"{FIELDS} {CUBE_HALF} {HAND_COLOUR} {DISTRACTOR_COLOUR} {palettes.CUBE_COLOR} "
                         f"{palettes.GOAL_COLOR} {state_lib.describe()}".encode()).hexdigest()[:12]
   return FrozenEncoder(name="poses", params={}, step=functools.partial(_step, k), init_state=lambda batch_size: (),
-                       num_tokens=3 + k, token_dim=DIM, identity=f"poses:{layout}:{k}", inputs=("state",))
+                       num_tokens=3 + k, token_dim=DIM, identity=f"poses:{layout}:{k}", inputs=("state",),
+                       points=points)
 
 
 encoders.register(encoders.Kind(
     name="poses", inputs=("state",), pretrain="", build=_build, title="Poses",
     description="one token per object from the simulator's exact poses, an unordered set without ids (control: "
                 "between the state token and the objects tokens)", family="control", order=5,
-    tokens=lambda config: f"{3 + int(config.env.max_distractors)} x {DIM}"))
+    tokens=lambda config: f"{3 + int(config.env.max_distractors)} x {DIM}", points=lambda config: ""))

@@ -15,7 +15,7 @@ tokens) and D their width. `encode_episode` runs the step over a whole episode w
 a policy is trained on (cached once per dataset) are exactly those closed-loop control sees frame by frame.
 """
 import dataclasses
-from typing import Any, Callable, Mapping, Sequence, Tuple
+from typing import Any, Callable, Mapping, Optional, Sequence, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +47,9 @@ class FrozenEncoder:
   token_dim: int
   identity: str
   inputs: Tuple[str, ...] = ("image",)
+  # tokens [B, N, D] -> (world points [B, N, 3] in metres, valid bool [B, N]): where each token's object is, for an
+  # encoder whose tokens carry it (policy.hand_relative, roboshape/encoders/proprio.py); None: they do not
+  points: Optional[Callable] = None
 
   def encode_episode(self, episode) -> jax.Array:
     """frames uint8 [T, H, W, 3] (or a dict of [T, ...] observations) -> tokens [T, N, D], recurrent over the
