@@ -75,6 +75,7 @@ _RANGES = {
         Number("policy.eval.noise", 0.0, "the sampling noise, a fraction of the mode's scale"),
         Flag("policy.proprio", "a proprioception token per frame"),
         Flag("policy.hand_relative", "each token's object relative to the hand (needs policy.proprio)"),
+        Flag("policy.frame_pool", "each frame's tokens pooled into one before the temporal transformer"),
         Ints("policy.train_seeds", 0, "one policy per training seed; (): one policy trained with config.seed",
              empty_ok=True, distinct=True),
     ),

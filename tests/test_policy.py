@@ -97,9 +97,11 @@ def test_gmm_head_bounds():
 # Trunk.
 
 
-@pytest.fixture(scope="module")
-def trunk():
-  net = policy_lib.PolicyNet(width=16, num_layers=2, num_heads=2, dropout=0.0, max_history=H, num_modes=2)
+@pytest.fixture(scope="module", params=[False, True], ids=["tokens", "frame_pool"])
+def trunk(request):
+  """The trunk over every token, and with each frame's tokens pooled into one (policy.frame_pool)."""
+  net = policy_lib.PolicyNet(width=16, num_layers=2, num_heads=2, dropout=0.0, max_history=H, num_modes=2,
+                             frame_pool=request.param)
   tokens = jax.random.normal(jax.random.PRNGKey(0), (2, H, K, D))
   params = jax.jit(net.init)(jax.random.PRNGKey(1), tokens, jnp.zeros((2, H), jnp.int32))
   apply = jax.jit(lambda p, x, q: net.apply(p, x, q).means)
@@ -113,6 +115,9 @@ def test_slot_permutation_leaves_actions_unchanged(trunk):
   permuted = tokens[:, np.arange(H)[:, None], perm]
   assert not np.allclose(permuted, tokens)
   np.testing.assert_allclose(apply(params, permuted, frames), apply(params, tokens, frames), atol=1e-5)
+  # An all-zero token (an absent object) is padding: a frame's last token zeroed equals the frame without it.
+  padded = tokens.at[:, :, -1].set(0.0)
+  np.testing.assert_allclose(apply(params, padded, frames), apply(params, tokens[:, :, :-1], frames), atol=1e-5)
 
 
 def test_act_token_sees_all_history_and_no_future(trunk):

@@ -82,6 +82,26 @@ def attention_mask(num_frames: int, num_tokens: int, act_frames: jax.Array,
   return mask[:, None]
 
 
+class FramePool(nn.Module):
+  """One frame's tokens [F, N, W] (F frames of a batch, `present` bool [F, N]: False for padding) -> [F, W]: a
+  transformer block among the frame's present tokens, then attention from a learned query over them."""
+  num_heads: int
+  mlp_ratio: int = 4
+  dropout: float = 0.1
+
+  @nn.compact
+  def __call__(self, x, present, train: bool):
+    f, n, width = x.shape
+    mask = (present[:, None, None, :] | jnp.eye(n, dtype=bool)[None, None])          # [F, 1, N, N]
+    x = Block(self.num_heads, self.mlp_ratio, self.dropout, name="block")(x, mask, train)
+    query = self.param("query", nn.initializers.normal(0.02), (1, 1, width))
+    pooled = nn.MultiHeadDotProductAttention(num_heads=self.num_heads, dropout_rate=self.dropout,
+                                             deterministic=not train, name="pool")(
+                                                 jnp.broadcast_to(query, (f, 1, width)), nn.LayerNorm(name="ln")(x),
+                                                 mask=present[:, None, None, :])
+    return pooled[:, 0]
+
+
 class Trunk(nn.Module):
   """tokens [B, T, N, D] float, act_frames int [B, Q] in [0, T) -> [ACT] outputs [B, Q, width].
 
@@ -91,6 +111,10 @@ class Trunk(nn.Module):
   Attributes:
     width, num_layers, num_heads, mlp_ratio, dropout: the transformer encoder.
     max_history: H, the number of learned time embeddings (T <= H).
+    frame_pool: each frame's N tokens first go through one attention block among themselves (padding masked) and
+      are pooled into one token by attention from a learned query (`FramePool`), so the temporal transformer sees
+      T tokens instead of T*N: per sample about N times cheaper, as a policy with one token per view is. The pool is
+      permutation-invariant, so a frame's tokens still have no order.
   """
   width: int = 256
   num_layers: int = 8
@@ -98,6 +122,7 @@ class Trunk(nn.Module):
   mlp_ratio: int = 4
   dropout: float = 0.1
   max_history: int = 10
+  frame_pool: bool = False
 
   @nn.compact
   def __call__(self, tokens: jax.Array, act_frames: jax.Array, train: bool = False) -> jax.Array:
@@ -107,12 +132,17 @@ class Trunk(nn.Module):
     init = nn.initializers.normal(0.02)
     time_emb = self.param("time_embedding", init, (self.max_history, self.width))
     act_token = self.param("act_token", init, (self.width,))
-    x = nn.Dense(self.width, name="token_proj")(tokens.astype(jnp.float32)) + time_emb[:t, None, :]
+    present = jnp.any(tokens != 0, axis=-1).reshape(b, t * n)               # all-zero tokens: padding
+    x = nn.Dense(self.width, name="token_proj")(tokens.astype(jnp.float32))
+    if self.frame_pool:
+      x = FramePool(self.num_heads, self.mlp_ratio, self.dropout, name="frame_pool")(
+          x.reshape(b * t, n, self.width), present.reshape(b * t, n), train).reshape(b, t, 1, self.width)
+      n, present = 1, jnp.ones((b, t), bool)
+    x = x + time_emb[:t, None, :]
     x = x.reshape(b, t * n, self.width)
     act = act_token + time_emb[act_frames]                                     # [B, Q, W]
     x = jnp.concatenate([x, act], axis=1)
     x = nn.Dropout(self.dropout, deterministic=not train)(x)
-    present = jnp.any(tokens != 0, axis=-1).reshape(b, t * n)               # all-zero tokens: padding
     mask = attention_mask(t, n, act_frames, present)
     for i in range(self.num_layers):
       last = i == self.num_layers - 1
@@ -132,11 +162,12 @@ class PolicyNet(nn.Module):
   action_dim: int = 7
   num_modes: int = 5
   min_scale: float = 1e-4
+  frame_pool: bool = False
 
   @nn.compact
   def __call__(self, tokens, act_frames, train: bool = False) -> heads.GMM:
     h = Trunk(self.width, self.num_layers, self.num_heads, self.mlp_ratio, self.dropout, self.max_history,
-              name="trunk")(tokens, act_frames, train)
+              self.frame_pool, name="trunk")(tokens, act_frames, train)
     return heads.GMMHead(self.action_dim, self.num_modes, min_scale=self.min_scale, hidden=self.width, name="head")(h)
 
 
@@ -145,7 +176,7 @@ def net_from_config(policy_config) -> PolicyNet:
   c = policy_config
   return PolicyNet(width=c.width, num_layers=c.num_layers, num_heads=c.num_heads, mlp_ratio=c.mlp_ratio,
                    dropout=c.dropout, max_history=c.history, action_dim=c.action_dim, num_modes=c.num_modes,
-                   min_scale=c.min_scale)
+                   min_scale=c.min_scale, frame_pool=bool(c.get("frame_pool", False)))
 
 
 # ----------------------------------------------------------------------------------------------------------------
