@@ -1,5 +1,6 @@
 """Shared pytest set-up: the repository root on sys.path so `configs` and `roboshape` import from any cwd, and the
 tiny fixtures several test modules share (a synthetic episode and dataset, a whole tiny run)."""
+import contextlib
 import os
 import sys
 
@@ -7,6 +8,34 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # pylint: disable=wrong-import-position
 import pytest  # pylint: disable=wrong-import-position
+
+
+@contextlib.contextmanager
+def cheap_compiles():
+  """XLA's cheap optimisation level while the block runs: for compile-bound tests, whose programs run briefly."""
+  import jax  # pylint: disable=import-outside-toplevel
+  flag = "jax_disable_most_optimizations"
+  before = jax.config.read(flag)
+  jax.config.update(flag, True)
+  try:
+    yield
+  finally:
+    jax.config.update(flag, before)
+
+
+@pytest.fixture()
+def cheap_xla():
+  """A compile-bound test: `cheap_compiles` while it runs."""
+  with cheap_compiles():
+    yield
+
+
+@pytest.fixture(scope="module")
+def cheap_xla_module():
+  """A compile-bound test module (pytestmark = pytest.mark.usefixtures("cheap_xla_module")): `cheap_compiles` while
+  its tests run."""
+  with cheap_compiles():
+    yield
 
 
 def _synthetic_episode(seed: int, task: str = "push", resolution: int = 16, num_actions: int = 0,
@@ -59,7 +88,6 @@ def tiny_run(synthetic_dataset, tmp_path_factory):
   """The workdir of a whole tiny push x savi run: configs/push_savi.py:tiny on `synthetic_dataset` (16x16), through
   the stages pretrain, cache, train_policy and evaluate (one 10-step rollout at level train in a real simulator
   worker, no videos). Compile-bound, so built at XLA's cheap optimisation level."""
-  import jax  # pylint: disable=import-outside-toplevel
   from configs import common  # pylint: disable=import-outside-toplevel
   from roboshape import stages  # pylint: disable=import-outside-toplevel
   config = common.get_config("push", "savi", "tiny")
@@ -69,13 +97,8 @@ def tiny_run(synthetic_dataset, tmp_path_factory):
   config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 0
   config.sim.num_workers = 1
   workdir = str(tmp_path_factory.mktemp("tiny_run") / "push_savi")
-  flag = "jax_disable_most_optimizations"
-  before = jax.config.read(flag)
-  jax.config.update(flag, True)
-  try:
+  with cheap_compiles():
     stages.run(config, workdir)
-  finally:
-    jax.config.update(flag, before)
   return workdir
 
 

@@ -73,14 +73,7 @@ class Source:
     return map(self._batch, itertools.count(start))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _cheap_xla():
-  """These tests are bound by compile time: XLA's cheap optimisation level while they run."""
-  flag = "jax_disable_most_optimizations"
-  before = jax.config.read(flag)
-  jax.config.update(flag, True)
-  yield
-  jax.config.update(flag, before)
+pytestmark = pytest.mark.usefixtures("cheap_xla_module")     # compile-bound: XLA's cheap optimisation level
 
 
 @pytest.fixture(scope="module")

@@ -73,16 +73,22 @@ def test_the_state_token_is_the_vector_in_decimetres_then_relative_positions():
     enc.encode_batch({"image": np.zeros((1, 2, 4, 4, 3), np.uint8)})
 
 
+def _state_tokens_before_and_after(config):
+  """The state tokens [2, 3, TOKEN_DIM] of random states, from the state encoder of the default state section and
+  from that of `config` (checked), whose identity differs and whose width does not."""
+  config_check.check(config)
+  full = encoders.get("state").build(common.get_config(config.task, "state", "tiny"), "")
+  changed = encoders.get("state").build(config, "")
+  assert changed.identity != full.identity and changed.token_dim == full.token_dim
+  states = np.random.default_rng(2).normal(size=(2, 3, state_lib.DIM)).astype(np.float32)
+  return (np.asarray(full.encode_batch({"state": states}))[:, :, 0],
+          np.asarray(changed.encode_batch({"state": states}))[:, :, 0])
+
+
 def test_withholding_a_state_field_zeroes_its_entries_and_the_relative_ones_made_from_it_and_nothing_else():
   config = common.get_config("pick", "state", "tiny")
-  full = encoders.get("state").build(config, "")
   config.state.withhold = ("cube_quat", "cube_pos")
-  config_check.check(config)
-  part = encoders.get("state").build(config, "")
-  assert part.identity != full.identity and part.token_dim == full.token_dim
-  states = np.random.default_rng(2).normal(size=(2, 3, state_lib.DIM)).astype(np.float32)
-  a = np.asarray(full.encode_batch({"state": states}))[:, :, 0]
-  b = np.asarray(part.encode_batch({"state": states}))[:, :, 0]
+  a, b = _state_tokens_before_and_after(config)
   cuts = state_lib.slices()
   gone = np.zeros(a.shape[-1], bool)
   gone[cuts["cube_quat"]] = gone[cuts["cube_pos"]] = True
@@ -233,16 +239,6 @@ def test_a_new_encoders_module_places_it_in_the_tables_the_verdict_and_the_gpu_p
                   family="global-ish")
 
 
-@pytest.fixture()
-def cheap_xla():
-  """A compile-bound test: XLA's cheap optimisation level while it runs."""
-  import jax  # pylint: disable=import-outside-toplevel
-  before = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", before)
-
-
 @pytest.mark.usefixtures("cheap_xla")
 def test_a_new_encoder_runs_the_tiny_pipeline(toy, synthetic_dataset, tmp_path):
   """cache -> train_policy -> evaluate (the real simulator, one short rollout) -> report, on the shared synthetic
@@ -278,14 +274,8 @@ def test_a_new_encoder_runs_the_tiny_pipeline(toy, synthetic_dataset, tmp_path):
 
 def test_the_absolute_state_token_zeroes_the_relative_entries_alone():
   config = common.get_config("pick", "state", "tiny")
-  full = encoders.get("state").build(config, "")
   config.state.relative = False
-  config_check.check(config)
-  absolute = encoders.get("state").build(config, "")
-  assert absolute.identity != full.identity and absolute.token_dim == full.token_dim
-  states = np.random.default_rng(3).normal(size=(2, 3, state_lib.DIM)).astype(np.float32)
-  a = np.asarray(full.encode_batch({"state": states}))[:, :, 0]
-  b = np.asarray(absolute.encode_batch({"state": states}))[:, :, 0]
+  a, b = _state_tokens_before_and_after(config)
   np.testing.assert_array_equal(b[..., :state_lib.DIM], a[..., :state_lib.DIM])
   assert (b[..., state_lib.DIM:] == 0).all() and (a[..., state_lib.DIM:] != 0).all()
 

@@ -2,7 +2,6 @@
 import json
 import os
 
-import jax
 import numpy as np
 import pytest
 
@@ -35,15 +34,10 @@ def test_each_action_is_read_from_the_window_training_reads_it_in():
   assert bc.Windows(data, 3, (np.ones(7), np.zeros(7))).window_start.tolist() == [0, 1, 2, 3]
 
 
+@pytest.mark.usefixtures("cheap_xla")
 def test_the_offline_figures_of_the_tiny_run(tiny_run):
   from roboshape.train import cache  # pylint: disable=import-outside-toplevel
-  flag = "jax_disable_most_optimizations"
-  before = jax.config.read(flag)
-  jax.config.update(flag, True)
-  try:
-    assert offline.main([tiny_run]) == 0
-  finally:
-    jax.config.update(flag, before)
+  assert offline.main([tiny_run]) == 0
   with open(os.path.join(tiny_run, "eval", offline.OFFLINE_FILE)) as f:
     got = json.load(f)
   (features,) = [os.path.join(tiny_run, "features", k) for k in os.listdir(os.path.join(tiny_run, "features"))]

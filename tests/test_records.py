@@ -24,14 +24,7 @@ from roboshape.data import rlds
 from roboshape.errors import UserError
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _cheap_compiles():
-  import jax  # pylint: disable=import-outside-toplevel
-  flag = "jax_disable_most_optimizations"
-  before = jax.config.read(flag)
-  jax.config.update(flag, True)
-  yield
-  jax.config.update(flag, before)
+pytestmark = pytest.mark.usefixtures("cheap_xla_module")     # compile-bound: XLA's cheap optimisation level
 
 
 @pytest.fixture(scope="module")

@@ -82,13 +82,7 @@ class Source:
       yield {"video": self.clip[None], "episode_seed": np.array([100 + i])}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-  """Compile-bound tests: XLA's cheap optimisation level for this module only."""
-  previous = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", previous)
+pytestmark = pytest.mark.usefixtures("cheap_xla_module")     # compile-bound: XLA's cheap optimisation level
 
 
 @pytest.fixture(scope="module")
