@@ -237,7 +237,7 @@ def table(rows: List[Dict]) -> str:
   if diagnosed:
     lines += ["", "Where success is lost, for the probes that measured it: the tool centre point's closest distance "
               "to the cube (median over the train-level rollouts); the length of the first actions' position part "
-              "(median; 1 is the controller's largest step) in closed loop, predicted offline on the validation "
+              "(median; controller units, each axis at most 1) in closed loop, predicted offline on the validation "
               "demos, and the expert's; the offline action MSE on the validation demos by phase "
               "(roboshape/eval/offline.py).", "",
               "| probe | train success | closest to cube (cm) | first moves: closed loop / offline / expert | "

@@ -24,7 +24,7 @@ the statistics (tables say how many). Actions are clipped to [-1, 1] before they
 Where a failure is lost, per rollout (from the pool's privileged `state`, which the policy need not read):
 `closest_cube_cm`, the tool centre point's closest distance to the cube over the episode, in centimetres (a policy
 that never reaches the cube against one that reaches it and fails to grasp), and `first_move`, the mean length of
-the position part of the policy's first FIRST_STEPS actions (controller units, 1 = the largest step): a policy that
+the position part of the policy's first FIRST_STEPS actions (controller units, each axis at most 1): a policy that
 imitates the motion it sees in its history starts still (the copycat failure), where the experts start at full speed.
 
 Outputs in <workdir>/eval/: results.jsonl (the log), results.json (every rollout + per-level summary), results.csv,
