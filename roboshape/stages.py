@@ -1,10 +1,10 @@
 """The pipeline's stages and the order a config runs them in.
 
-Each stage is a module with `run(config, workdir)`; it is imported only when it runs, so a stage that renders never
-imports TensorFlow and a stage that trains never imports SAPIEN. Each stage resumes where a killed run stopped
-and skips work that is already done. The pretrain stage is the encoder's own (roboshape.encoders.Kind.pretrain),
-run as `run(config, workdir, make_validation)` with the validation of the encoder's evaluator (Kind.evaluator, in
-roboshape/eval/): this is where training meets evaluation, so that train/ never imports eval/.
+Each stage is a function of (config, workdir) in `STAGE_RUNS`, which imports its module only when it runs, so a stage
+that renders never imports TensorFlow and a stage that trains never imports SAPIEN. Each stage resumes where a killed run stopped
+and skips work that is already done. The pretrain stage is the encoder's own (roboshape.encoders.Kind.pretrain, a
+key of `PRETRAINERS`), run with the validation of the encoder's evaluator (Kind.evaluator, a key of `EVALUATORS`,
+in roboshape/eval/): this is where training meets evaluation, so that train/ never imports eval/.
 
 A full disk ends a stage in one line (`DiskFull`, `disk_full_is_one_line`) wherever it is noticed, for every stage
 alike: the stages write atomically (roboshape/fileio.py, orbax's temporary checkpoint folders, dataset shards under
@@ -12,7 +12,6 @@ temporary names), so what they wrote completely is kept and the same command res
 """
 import contextlib
 import functools
-import importlib
 import json
 import os
 import time
@@ -32,14 +31,62 @@ from roboshape.grid import grid_configs
 from roboshape.grid import pretrained_from
 from roboshape.train import fingerprint
 
-STAGE_MODULES = {
-    "collect": "roboshape.data.collect",
-    "pretrain": "",           # the encoder's own (roboshape.encoders.Kind.pretrain), e.g. roboshape.train.pretrain
-    "cache": "roboshape.train.cache",
-    "train_policy": "roboshape.train.bc",
-    "evaluate": "roboshape.eval.closed_loop",
-    "report": "roboshape.eval.report",
+
+
+def _collect(config, workdir: str) -> None:
+  from roboshape.data import collect  # pylint: disable=import-outside-toplevel
+  collect.run(config, workdir)
+
+
+def _cache(config, workdir: str) -> None:
+  from roboshape.train import cache  # pylint: disable=import-outside-toplevel
+  cache.run(config, workdir)
+
+
+def _train_policy(config, workdir: str) -> None:
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  bc.run(config, workdir)
+
+
+def _evaluate(config, workdir: str) -> None:
+  from roboshape.eval import closed_loop  # pylint: disable=import-outside-toplevel
+  closed_loop.run(config, workdir)
+
+
+def _report(config, workdir: str) -> None:
+  from roboshape.eval import report  # pylint: disable=import-outside-toplevel
+  report.run(config, workdir)
+
+
+def _pretrain_loop(config, workdir: str, make_validation) -> None:
+  from roboshape.train import pretrain  # pylint: disable=import-outside-toplevel
+  pretrain.run(config, workdir, make_validation)
+
+
+def _slots_validation(*args):
+  from roboshape.eval import slots  # pylint: disable=import-outside-toplevel
+  return slots.validation(*args)
+
+
+def _reconstruction_validation(*args):
+  from roboshape.eval import reconstruction  # pylint: disable=import-outside-toplevel
+  return reconstruction.validation(*args)
+
+
+# Every stage but pretrain: (config, workdir) -> None. Pretrain is the encoder's own: PRETRAINERS[Kind.pretrain]
+# as (config, workdir, make_validation), given EVALUATORS[Kind.evaluator] (None for an encoder without one).
+STAGE_RUNS = {
+    "collect": _collect,
+    "cache": _cache,
+    "train_policy": _train_policy,
+    "evaluate": _evaluate,
+    "report": _report,
 }
+# Kind.pretrain -> the trainer: "loop", the pretraining loop (roboshape/train/pretrain.py), which trains Kind.model.
+PRETRAINERS = {"loop": _pretrain_loop}
+# Kind.evaluator -> its validation(config, root, model, episodes) (roboshape/eval/): SAVi's FG-ARI and per-object
+# IoUs, the autoencoder's reconstruction error.
+EVALUATORS = {"slots": _slots_validation, "reconstruction": _reconstruction_validation}
 
 
 # The fields that make a workdir's config.json another run's: a run resumed or extended keeps them all.
@@ -169,7 +216,7 @@ def run_grid(config, workdir: str, redo: Sequence[str] = ()) -> None:
       _run_grid_runs(config, runs, redo)
       if "report" in config.stages:
         with disk_full_is_one_line("the report stage", workdir):
-          importlib.import_module(STAGE_MODULES["report"]).run(config, workdir)
+          STAGE_RUNS["report"](config, workdir)
 
 
 def _redo_of(sub, redo: Sequence[str]) -> tuple:
@@ -278,32 +325,20 @@ def _finish_run(config, task: str, column: str, sub, sub_dir: str, error) -> Non
       print(f"[roboshape] not published: {e}", flush=True)
 
 
-def _import_stage(name: str, module_name: str):
-  """The module of stage `name`; a UserError when this version of roboshape lacks it."""
-  try:
-    return importlib.import_module(module_name)
-  except ModuleNotFoundError as e:
-    if e.name and e.name.startswith("roboshape"):
-      raise UserError(f"stage {name!r} is not implemented in this version of roboshape "
-                      f"({module_name} is missing); drop it with --config.stages.") from None
-    raise
-
-
 def stage_runner(name: str, config):
-  """The stage `name` of `config`, imported, as a function of the workdir: `run(config, workdir)` of its module;
-  for "pretrain" the encoder's pretrain module, given the `validation` of the encoder's evaluator module (none
-  for an encoder without one)."""
+  """The stage `name` of `config` as a function of the workdir: STAGE_RUNS[name]; for "pretrain" the encoder's
+  trainer (PRETRAINERS[Kind.pretrain]) given its evaluator's validation (EVALUATORS[Kind.evaluator], None for an
+  encoder without one)."""
   if name != "pretrain":
-    module = _import_stage(name, STAGE_MODULES[name])
-    return lambda workdir: module.run(config, workdir)
+    return functools.partial(STAGE_RUNS[name], config)
   kind = encoders.get(config.encoder)
-  trainer = _import_stage(name, kind.pretrain)
-  make_validation = _import_stage(name, kind.evaluator).validation if kind.evaluator else None
-  return lambda workdir: trainer.run(config, workdir, make_validation)
+  trainer = PRETRAINERS[kind.pretrain]
+  make_validation = EVALUATORS[kind.evaluator] if kind.evaluator else None
+  return lambda workdir: trainer(config, workdir, make_validation)
 
 
 def run(config, workdir: str, redo: Sequence[str] = ()) -> None:
-  """Runs config.stages in order, each as `run(config, workdir)` of its module (a grid config: `run_grid`).
+  """Runs config.stages in order, each as `stage_runner(name, config)(workdir)` (a grid config: `run_grid`).
 
   Before any stage runs and before config.json is written, the whole config is checked (roboshape.config_check)
   and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was, and so does a

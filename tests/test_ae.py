@@ -189,7 +189,7 @@ def test_the_frozen_encoder_gives_one_memoryless_token_per_frame(straight):
 
 def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_path):
   """launch.py's path for push_ae: the registry's pretrain stage (the one loop) on a real dataset, then the cache."""
-  assert encoders.get("ae").pretrain == encoders.get("savi").pretrain == "roboshape.train.pretrain"
+  assert encoders.get("ae").pretrain == encoders.get("savi").pretrain == "loop"
   assert "pretrain" in common.get_config("push", "ae", "tiny").stages
   config = tiny_config()
   config.data.dir = os.path.dirname(os.path.dirname(synthetic_dataset))  # <dir>/roboshape_push/1.0.0

@@ -28,7 +28,7 @@ def test_a_registered_toy_encoder_is_a_config_choice():
     config = common.get_config("pick", "toy_registered", "tiny")
     assert config.encoder == "toy_registered" and "pretrain" not in config.stages
   finally:
-    encoders._REGISTRY.pop(kind.name)  # pylint: disable=protected-access
+    encoders.unregister(kind.name)
   with pytest.raises(ValueError, match="inputs"):
     encoders.Kind(name="bad", inputs=("pixels",), pretrain="", build=None, title="", description="")
 
@@ -170,7 +170,7 @@ def toy():
   import toy_encoder  # pylint: disable=import-outside-toplevel
   encoders.register(toy_encoder.KIND)
   yield toy_encoder
-  encoders._REGISTRY.pop(toy_encoder.NAME)  # pylint: disable=protected-access
+  encoders.unregister(toy_encoder.NAME)
 
 
 def _toy_config(toy, data_dir=""):
@@ -351,3 +351,23 @@ def test_an_object_tokens_point_is_its_centroid_at_its_depth_through_the_camera(
   where, valid = objects.points(tokens)
   np.testing.assert_allclose(np.asarray(where)[0], world[0], atol=1e-5)
   assert np.asarray(valid).tolist() == [True, False]
+
+
+def test_every_encoders_trainer_and_evaluator_is_in_the_stages_tables():
+  """Kind.pretrain and Kind.evaluator name entries of roboshape/stages.py's tables, each a function that runs or
+  validates; the pretrain stage of each encoder that has one is its trainer given its evaluator's validation."""
+  from roboshape import stages  # pylint: disable=import-outside-toplevel
+  for name in encoders.names():
+    kind = encoders.get(name)
+    assert not kind.pretrain or callable(stages.PRETRAINERS[kind.pretrain]), name
+    assert not kind.evaluator or callable(stages.EVALUATORS[kind.evaluator]), name
+  assert {encoders.get(n).evaluator for n in ("savi", "ae")} == set(stages.EVALUATORS)
+  calls = []
+  config = common.get_config("push", "savi", "tiny")
+  original = stages.PRETRAINERS["loop"]
+  try:
+    stages.PRETRAINERS["loop"] = lambda *args: calls.append(args)
+    stages.stage_runner("pretrain", config)("/w")
+  finally:
+    stages.PRETRAINERS["loop"] = original
+  assert calls == [(config, "/w", stages.EVALUATORS["slots"])]

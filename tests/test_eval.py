@@ -538,11 +538,7 @@ def test_grid_skips_baseline_on_user_error(tmp_path, monkeypatch):
       if cfg.encoder == "dino":
         raise stages.UserError("DINO weights not found: set --config.baselines.dino.path")
 
-  monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
-  real_import = stages.importlib.import_module    # the global one: other imports (jax's, flax's) must still work
-  monkeypatch.setattr(stages.importlib, "import_module",
-                      lambda name, *args, **kwargs: (Stage if name == "fake_train_policy"
-                                                     else real_import(name, *args, **kwargs)))
+  monkeypatch.setitem(stages.STAGE_RUNS, "train_policy", Stage.run)
   stages.run(config, str(tmp_path))
   assert [e for e, _ in calls] == ["savi", "dino"]
   md = open(tmp_path / "report" / "report.md").read()
@@ -566,11 +562,7 @@ def test_a_grid_skips_a_baseline_without_its_weight_file_before_any_run_starts(t
       calls.append((cfg.encoder, os.path.exists(os.path.join(
           rundir.grid_run_dir(str(tmp_path / "grid"), "push", "r3m"), rundir.SKIPPED_FILE))))
 
-  monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
-  real_import = stages.importlib.import_module
-  monkeypatch.setattr(stages.importlib, "import_module",
-                      lambda name, *args, **kwargs: (Stage if name == "fake_train_policy"
-                                                     else real_import(name, *args, **kwargs)))
+  monkeypatch.setitem(stages.STAGE_RUNS, "train_policy", Stage.run)
   stages.run(config, str(tmp_path / "grid"))
   assert calls == [("savi", True), ("dino", True)]                   # skipped before the first run started
   reason = f"R3M ResNet-50 weights not found at {tmp_path / 'absent' / 'model.pt'}; download the official file"
@@ -606,11 +598,7 @@ def test_a_full_disk_stops_the_grid_in_one_line_rather_than_skipping_the_run(tmp
       if cfg.encoder == "dino":
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), full)
 
-  monkeypatch.setitem(stages.STAGE_MODULES, "train_policy", "fake_train_policy")
-  real_import = stages.importlib.import_module
-  monkeypatch.setattr(stages.importlib, "import_module",
-                      lambda name, *args, **kwargs: (Stage if name == "fake_train_policy"
-                                                     else real_import(name, *args, **kwargs)))
+  monkeypatch.setitem(stages.STAGE_RUNS, "train_policy", Stage.run)
   with pytest.raises(DiskFull) as e:
     stages.run(config, str(tmp_path))
   assert str(e.value) == (f"disk full while the train_policy stage wrote {full}: what it wrote completely is kept. "

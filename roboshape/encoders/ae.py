@@ -7,7 +7,7 @@ The ranges of the ae section are declared here (RANGES) and checked by `check`, 
 import functools
 import os
 
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape import ranges
 from roboshape import rundir
 from roboshape.encoders import savi as savi_encoder
@@ -56,11 +56,11 @@ def _tokens(config) -> str:
   return f"1 x {ae.latent_size(config)}"
 
 
-encoders.register(encoders.Kind(
-    name="ae", inputs=("image",), pretrain="roboshape.train.pretrain", build=_build, title="AE",
+registry.register(registry.Kind(
+    name="ae", inputs=("image",), pretrain="loop", build=_build, title="AE",
     description="a frame autoencoder with SAVi's CNN and decoder, pretrained like SAVi on the task's frames "
                 "(one latent per frame; control: in-domain pretraining without objects)",
-    evaluator="roboshape.eval.reconstruction",
-    model=encoders.PretrainModel(build=_model, selection=encoders.Selection("recon_mse", False,
+    evaluator="reconstruction",
+    model=registry.PretrainModel(build=_model, selection=registry.Selection("recon_mse", False,
                                                                              "reconstruction MSE")),
     sections=("pretrain", "ae"), check=check, order=2, tokens=_tokens))

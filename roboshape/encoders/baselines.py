@@ -3,7 +3,7 @@
 Each reads its own config section (baselines.r3m, baselines.dino), checked by its `check`: a known architecture and
 frames at least the network's smallest side.
 """
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape import ranges
 from roboshape.errors import UserError
 
@@ -60,12 +60,12 @@ def _dino(config, workdir: str):
   return dino.load_encoder(config.baselines.dino, resolution=config.env.resolution)
 
 
-encoders.register(encoders.Kind(
+registry.register(registry.Kind(
     name="r3m", inputs=("image",), pretrain="", build=_r3m, title="R3M",
     description="R3M ResNet from the official weights (one global token)",
     sections=("baselines.r3m",), check=check_r3m, available=available_r3m, order=1,
     tokens=lambda config: f"1 x (2048 for {config.baselines.r3m.arch}; 512 for resnet18/34)"))
-encoders.register(encoders.Kind(
+registry.register(registry.Kind(
     name="dino", inputs=("image",), pretrain="", build=_dino, title="DINO",
     description="DINO ViT from the official weights (the CLS token, optionally the patch tokens)",
     sections=("baselines.dino",), check=check_dino, available=available_dino, order=0,

@@ -18,7 +18,7 @@ An option whose fields all lie in the policy section changes nothing its encoder
 import dataclasses
 from typing import Any, Dict, Tuple
 
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape import rundir
 from roboshape.errors import UserError
 
@@ -48,9 +48,9 @@ def parse(column: str) -> Tuple[str, Dict[str, Any]]:
     raise UserError(f"column {column!r}: use a registered encoder's name, alone or with options "
                     f"({_choices()}).")
   encoder, *options = column.split(SEPARATOR)
-  if encoder not in encoders.names():
+  if encoder not in registry.names():
     raise UserError(f"unknown encoder {encoder!r} in column {column!r}; registered encoders: "
-                    f"{', '.join(encoders.names())} (options: {_choices()}).")
+                    f"{', '.join(registry.names())} (options: {_choices()}).")
   unknown = [o for o in options if o not in OPTIONS]
   if unknown:
     raise UserError(f"unknown option {unknown[0]!r} in column {column!r}; options: {_choices()}.")
@@ -100,4 +100,4 @@ def title(column: str) -> str:
   """The column's name in tables: its encoder's title, then its options ("SAVi+proprio")."""
   encoder, *options = column.split(SEPARATOR)
   parse(column)
-  return SEPARATOR.join([encoders.get(encoder).title] + options)
+  return SEPARATOR.join([registry.get(encoder).title] + options)

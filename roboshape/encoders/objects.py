@@ -24,7 +24,7 @@ depth the depth entry is 0.
 import functools
 import hashlib
 
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape.envs import ids
 
 NUM_IDS = ids.NUM_IDS   # backdrop, table, robot arm, cube, target/bin, up to 8 distractors, the hand
@@ -141,7 +141,7 @@ def _build(config, workdir: str):
                        points=points if depth else None)
 
 
-encoders.register(encoders.Kind(
+registry.register(registry.Kind(
     name="objects", inputs=("image", "segmentation"), pretrain="", build=_build, title="Objects",
     description="ground-truth object tokens from the segmentation, one per id (control: the upper bound of SAVi); "
                 "reads depth too with env.depth", family="control", order=4,

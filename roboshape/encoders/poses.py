@@ -23,7 +23,7 @@ import hashlib
 
 import numpy as np
 
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape.envs import palettes
 from roboshape.envs import state as state_lib
 
@@ -83,7 +83,7 @@ def _build(config, workdir: str):
                        points=points)
 
 
-encoders.register(encoders.Kind(
+registry.register(registry.Kind(
     name="poses", inputs=("state",), pretrain="", build=_build, title="Poses",
     description="one token per object from the simulator's exact poses, an unordered set without ids (control: "
                 "between the state token and the objects tokens)", family="control", order=5,

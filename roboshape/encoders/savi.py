@@ -17,7 +17,7 @@ import functools
 import json
 import os
 
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape import ranges
 from roboshape import rundir
 from roboshape.encoders import columns
@@ -193,10 +193,10 @@ def _model(config):
   return savi.model_from_config(config)
 
 
-encoders.register(encoders.Kind(
-    name="savi", inputs=("image",), pretrain="roboshape.train.pretrain", build=_build, title="SAVi",
+registry.register(registry.Kind(
+    name="savi", inputs=("image",), pretrain="loop", build=_build, title="SAVi",
     description="slot attention for video, pretrained on the task's frames (K slots per frame)",
-    evaluator="roboshape.eval.slots",
-    model=encoders.PretrainModel(build=_model, selection=encoders.Selection("fg_ari", True, "FG-ARI")),
+    evaluator="slots",
+    model=registry.PretrainModel(build=_model, selection=registry.Selection("fg_ari", True, "FG-ARI")),
     sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True, family="object-centric", order=3,
     tokens=lambda config: f"{config.savi.num_slots} x {config.savi.slot_size}"))

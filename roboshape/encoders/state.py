@@ -17,7 +17,7 @@ ladder between the state token and object tokens (results/small/recipe) that say
 """
 import numpy as np
 
-from roboshape import encoders
+from roboshape.encoders import registry
 from roboshape.envs import state as state_lib
 from roboshape.errors import UserError
 
@@ -97,7 +97,7 @@ def _build(config, workdir: str):
                        identity=f"state:{_layout_hash(withhold, relative)}", inputs=("state",))
 
 
-encoders.register(encoders.Kind(
+registry.register(registry.Kind(
     name="state", inputs=("state",), pretrain="", build=_build, title="State",
     description="the privileged simulator state as one token (control: the upper bound)",
     sections=("state",), check=check, family="privileged", order=6, tokens=lambda config: f"1 x {TOKEN_DIM}"))
