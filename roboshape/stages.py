@@ -54,7 +54,7 @@ def _evaluate(config, workdir: str) -> None:
 
 
 def _report(config, workdir: str) -> None:
-  from roboshape.eval import report  # pylint: disable=import-outside-toplevel
+  from roboshape.report import report  # pylint: disable=import-outside-toplevel
   report.run(config, workdir)
 
 
@@ -190,7 +190,7 @@ def run_grid(config, workdir: str, redo: Sequence[str] = ()) -> None:
   recorded as skipped in <run>/SKIPPED.json, with the message as the reason, and the grid goes on; the report
   prints it as a "skipped: <reason>" line. A baseline whose weight file is absent (Kind.available) is skipped so
   before the first run starts. Every run's config and workdir are checked before the first one starts.
-  With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/eval/publish.py).
+  With `grid.publish` set, each run's results are copied there as soon as it is evaluated (roboshape/report/publish.py).
   With `grid.lanes` > 1 the task's datasets are collected first, one task at a time, then up to `grid.lanes` runs
   go at once, each a child process pinned to its share of the cores (roboshape/lanes.py, its log in <run>/log.txt);
   the last run left is resumed on every core. `redo` (launch.py's --redo) reaches every run that runs the stage.
@@ -208,7 +208,7 @@ def run_grid(config, workdir: str, redo: Sequence[str] = ()) -> None:
     with disk_full_is_one_line("the grid", workdir):
       rundir.save_config(config, workdir)
       if config.grid.get("publish"):
-        from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+        from roboshape.report import publish  # pylint: disable=import-outside-toplevel
         publish.record_grid(config.grid.publish, dict.fromkeys(t for t, _, _, _ in runs),
                             dict.fromkeys(c for _, c, _, _ in runs))
       runs = _skip_unavailable(config, runs)
@@ -302,7 +302,7 @@ def _finish_run(config, task: str, column: str, sub, sub_dir: str, error) -> Non
   """After a grid run: `error` (a UserError's message) skips a baseline (SKIPPED.json) and stops the grid for SAVi
   (Kind.baseline); a run that ended well loses an old SKIPPED.json and is published when the grid publishes (or
   says in a line why not, e.g. its task's published cells were trained on another dataset, and the grid goes on)."""
-  from roboshape.eval import publish  # pylint: disable=import-outside-toplevel
+  from roboshape.report import publish  # pylint: disable=import-outside-toplevel
   dest = config.grid.get("publish")
   skipped = os.path.join(sub_dir, rundir.SKIPPED_FILE)
   if error is not None:

@@ -31,7 +31,7 @@ from roboshape import errors
 from roboshape import grid
 from roboshape import rundir
 from roboshape.encoders import columns
-from roboshape.eval import results as results_lib
+from roboshape.report import results as results_lib
 from roboshape.errors import UserError
 
 

@@ -11,7 +11,7 @@ from roboshape import fileio
 from roboshape import rundir
 from roboshape import status
 from roboshape.errors import UserError
-from roboshape.eval import report
+from roboshape.report import report
 
 GOOD_ROW = ("task,encoder,train_seed,level,seed_index,rollout,seed,success,length,ended,reached\n"
             "push,state,,train,0,0,1000000000,True,20,success,moved+halfway+on_target\n")

@@ -223,8 +223,8 @@ def test_a_new_encoders_module_places_it_in_the_tables_the_verdict_and_the_gpu_p
   # pylint: disable=import-outside-toplevel
   import importlib
   import os
-  from roboshape.eval import claims
-  from roboshape.eval import tables
+  from roboshape.report import claims
+  from roboshape.report import tables
   assert tables.sort_encoders(("toy", "state", "savi", "dino", "toy+proprio")) == (
       "dino", "savi", "state", "toy", "toy+proprio")                               # its Kind's order: after them
   assert claims.global_encoders()[-1] == "toy" and claims.compared(("savi", "toy", "objects")) == ["toy", "objects"]

@@ -16,10 +16,10 @@ from roboshape import stages
 from roboshape.envs import state as state_lib
 from roboshape.errors import UserError
 from roboshape.eval import closed_loop
-from roboshape.eval import publish
-from roboshape.eval import report
-from roboshape.eval import results as results_lib
-from roboshape.eval import tables
+from roboshape.report import publish
+from roboshape.report import report
+from roboshape.report import results as results_lib
+from roboshape.report import tables
 
 HORIZON = 8
 

@@ -10,7 +10,7 @@ from configs import reproduce
 from roboshape import lanes
 from roboshape import rundir
 from roboshape import stages
-from roboshape.eval import publish
+from roboshape.report import publish
 from roboshape.errors import UserError
 
 

@@ -2,10 +2,11 @@
 
 A module may import its own layer or the layers below it, never one above:
 
-  9  benchmarks/, scripts/
-  8  stages, status, cli, launch.py, the package's entry points (roboshape/__init__.py), configs/
-  7  grid, config_check      the runs of a grid config; the check of a whole config before any stage runs
-  6  eval                    evaluators, closed loop, tables, report
+  10 benchmarks/, scripts/
+  9  stages, status, cli, launch.py, the package's entry points (roboshape/__init__.py), configs/
+  8  grid, config_check      the runs of a grid config; the check of a whole config before any stage runs
+  7  eval                    the evaluators: closed loop, offline action error, SAVi's and the AE's validation
+  6  report                  tables, figures, the verdict, READMEs and publishing, from results files
   5  train                   pretraining, behaviour cloning, the feature cache
   4  encoders                the registry and the frozen encoders it serves
   3  data                    the RLDS dataset
@@ -33,11 +34,12 @@ LAYERS = {
     "roboshape.data": 3,
     "roboshape.encoders": 4,
     "roboshape.train": 5,
-    "roboshape.eval": 6,
-    "roboshape.grid": 7, "roboshape.config_check": 7,
-    "roboshape.stages": 8, "roboshape.lanes": 8, "roboshape.status": 8, "roboshape.cli": 8, "roboshape": 8,
-    "launch": 8, "configs": 8,
-    "benchmarks": 9, "scripts": 9,
+    "roboshape.report": 6,
+    "roboshape.eval": 7,
+    "roboshape.grid": 8, "roboshape.config_check": 8,
+    "roboshape.stages": 9, "roboshape.lanes": 9, "roboshape.status": 9, "roboshape.cli": 9, "roboshape": 9,
+    "launch": 9, "configs": 9,
+    "benchmarks": 10, "scripts": 10,
 }
 SCANNED = ("roboshape", "configs", "benchmarks", "scripts", "launch.py")
 
@@ -173,14 +175,23 @@ def test_train_never_imports_eval_and_the_bottom_imports_nothing_above_it():
       assert not [t for t in targets if t.startswith("roboshape.train")], module
 
 
+def test_reporting_never_imports_evaluation():
+  """roboshape/report/ writes tables and figures from results files; the evaluators (roboshape/eval/) write theirs
+  through it, never the other way."""
+  for module, path in modules(ROOT):
+    if module.startswith("roboshape.report"):
+      targets, _ = imports(ROOT, module, path)
+      assert not [t for t in targets if t.startswith(("roboshape.eval", "roboshape.train"))], module
+
+
 def test_the_scan_sees_imports_inside_functions(tmp_path):
   pkg = tmp_path / "roboshape" / "train"
   pkg.mkdir(parents=True)
   (tmp_path / "roboshape" / "__init__.py").write_text("")
   (pkg / "__init__.py").write_text("")
-  (pkg / "x.py").write_text("def f():\n  from roboshape.eval import plots\n  from roboshape.data import _y\n")
+  (pkg / "x.py").write_text("def f():\n  from roboshape.eval import closed_loop\n  from roboshape.data import _y\n")
   up, private = scan(str(tmp_path))
-  assert up == ["roboshape.train.x (layer 5) -> roboshape.eval (layer 6)"]
+  assert up == ["roboshape.train.x (layer 5) -> roboshape.eval (layer 7)"]
   assert private == ["roboshape.train.x: from roboshape.data import _y"]
 
 
@@ -193,7 +204,7 @@ def test_a_circle_through_a_third_module_is_found_within_one_layer(tmp_path):
   (top / "status.py").write_text("import roboshape.stages\n")
   (top / "cli.py").write_text("from roboshape import stages\n")          # imports the circle, is not on it
   assert circles(graph(str(tmp_path))) == [("roboshape.lanes", "roboshape.stages", "roboshape.status")]
-  assert scan(str(tmp_path)) == ([], [])                                  # all layer 8: no arrow points up
+  assert scan(str(tmp_path)) == ([], [])                                  # all layer 9: no arrow points up
 
 
 if __name__ == "__main__":

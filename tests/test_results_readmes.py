@@ -1,5 +1,5 @@
 """Every committed results README's numbers come from its files: the generated summary block of each published cell
-(roboshape/eval/readme.py, written by `python -m roboshape.eval.report ROOT`) equals what its results.csv and
+(roboshape/report/readme.py, written by `python -m roboshape.report.report ROOT`) equals what its results.csv and
 config.json give, and the tool rewrites that block and nothing else. The experiment configs point to those READMEs
 and quote no result of their own."""
 import ast
@@ -12,8 +12,8 @@ import pytest
 
 from configs import reproduce
 from roboshape import grid
-from roboshape.eval import readme
-from roboshape.eval import report
+from roboshape.report import readme
+from roboshape.report import report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMALL = os.path.join(ROOT, "results", "small")
@@ -37,9 +37,9 @@ def test_a_committed_readme_block_equals_what_its_results_csv_and_config_json_gi
   with open(os.path.join(folder, "README.md")) as f:
     text = f.read()
   body = readme.current(text)
-  assert body is not None, f"{cell}/README.md has no summary block: run python -m roboshape.eval.report results/small"
+  assert body is not None, f"{cell}/README.md has no summary block: run python -m roboshape.report.report results/small"
   assert f"{readme.BEGIN}\n{body}{readme.END}" == report.cell_block(folder), (
-      f"{cell}/README.md's summary block is stale: run python -m roboshape.eval.report results/small")
+      f"{cell}/README.md's summary block is stale: run python -m roboshape.report.report results/small")
   assert text.index(readme.BEGIN) < text.index("\n\n") + 3      # right after the title line
 
 

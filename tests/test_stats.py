@@ -1,16 +1,16 @@
-"""Tests of the report's intervals and verdict (roboshape/eval/stats.py, roboshape/eval/claims.py) on synthetic cells
-whose answers are known, and of the report that prints them (roboshape/eval/report.py)."""
+"""Tests of the report's intervals and verdict (roboshape/report/stats.py, roboshape/report/claims.py) on synthetic cells
+whose answers are known, and of the report that prints them (roboshape/report/report.py)."""
 import math
 import os
 
 import numpy as np
 import pytest
 
-from roboshape.eval import claims
-from roboshape.eval import plots
-from roboshape.eval import report
-from roboshape.eval import results as results_lib
-from roboshape.eval import stats
+from roboshape.report import claims
+from roboshape.report import plots
+from roboshape.report import report
+from roboshape.report import results as results_lib
+from roboshape.report import stats
 
 
 def _rollouts(task, encoder, wins, starts=60, train_seeds=(None,), first_seed=0):

@@ -1,4 +1,4 @@
-"""The stage log, `python -m roboshape.status` and publishing a finished run's results (roboshape/eval/publish.py)."""
+"""The stage log, `python -m roboshape.status` and publishing a finished run's results (roboshape/report/publish.py)."""
 import json
 import os
 import subprocess
@@ -11,7 +11,7 @@ from roboshape import fileio
 from roboshape import rundir
 from roboshape import status
 from roboshape.errors import UserError
-from roboshape.eval import publish
+from roboshape.report import publish
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -77,7 +77,7 @@ def test_the_stage_clock_beats_while_a_stage_runs_and_an_interrupted_attempt_kee
 
 
 def test_compute_sums_core_hours_per_cell_and_row_with_the_collection_apart(tmp_path):
-  from roboshape.eval import compute  # pylint: disable=import-outside-toplevel
+  from roboshape.report import compute  # pylint: disable=import-outside-toplevel
   logs = {("push", "savi"): {"collect": dict(state="done", seconds=1800.0, core_seconds=3600.0),
                              "train_policy": dict(state="done", seconds=3600.0, core_seconds=3600.0),
                              "evaluate": dict(state="done", seconds=900.0)},            # before cores: one core
@@ -392,7 +392,7 @@ def test_publish_from_the_command_line_and_its_one_line_refusals(tmp_path, capsy
   os.remove(os.path.join(rundir.eval_dir(workdir), rundir.RESULTS_FILE))
   for argv, message in (([grid, dest_root], "is a grid's workdir: publish each of its runs"),
                         ([workdir, dest_root], "has no evaluation results (results.json) to publish"),
-                        ([workdir], "usage: python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT")):
+                        ([workdir], "usage: python -m roboshape.report.publish RUN_WORKDIR DEST_ROOT")):
     assert publish.main(["publish"] + argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err

@@ -73,7 +73,7 @@ class Kind:
     slot_videos: its closed-loop videos also show its slot decomposition beside each frame
       (roboshape/eval/videos.py, SaviSlotVideo).
     family: its part in the paper's question (FAMILIES): "object-centric", the representation under study whose
-      claims the verdict tests (roboshape/eval/claims.py); "global", what it is compared with in those claims;
+      claims the verdict tests (roboshape/report/claims.py); "global", what it is compared with in those claims;
       "control", compared with it in the tables, not in the claims (e.g. ground-truth object tokens);
       "privileged", the control that should succeed, named in the verdict.
     order: its column's place in the tables (smaller first; the paper's order, then baselines and controls).

@@ -56,9 +56,9 @@ from roboshape.encoders import columns
 from roboshape.envs import state as state_lib
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
-from roboshape.eval import plots
-from roboshape.eval import results as results_lib
-from roboshape.eval import tables
+from roboshape.report import plots
+from roboshape.report import results as results_lib
+from roboshape.report import tables
 from roboshape.eval import videos
 from roboshape.sim.spec import CAMERA_KEYS
 

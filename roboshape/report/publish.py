@@ -1,6 +1,6 @@
 """Copies a finished run's results out of its workdir, so they survive the machine (e.g. into results/small/).
 
-  python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT    # one evaluated run, e.g. into results/small
+  python -m roboshape.report.publish RUN_WORKDIR DEST_ROOT    # one evaluated run, e.g. into results/small
   publish(config, workdir, dest_root)  ->  <dest_root>/<task>_<column>/
   check_datasets({(task, column): folder})   # UserError when cells of one task name different datasets
                                              # (publish refuses a cell that would make its row such a mix)
@@ -239,9 +239,9 @@ def _write_grid(dest_root: str, record: Dict) -> None:
 
 
 def main(argv) -> int:
-  """python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT: `publish` of the run in RUN_WORKDIR (its config.json)."""
+  """python -m roboshape.report.publish RUN_WORKDIR DEST_ROOT: `publish` of the run in RUN_WORKDIR (its config.json)."""
   if len(argv) != 3 or any(a.startswith("-") for a in argv[1:]):
-    print("usage: python -m roboshape.eval.publish RUN_WORKDIR DEST_ROOT   (e.g. results/small)", file=sys.stderr)
+    print("usage: python -m roboshape.report.publish RUN_WORKDIR DEST_ROOT   (e.g. results/small)", file=sys.stderr)
     return 2
   try:
     config = rundir.load_config(argv[1])

@@ -7,7 +7,7 @@ import numpy as np
 
 from roboshape import fileio
 from roboshape.envs.palettes import LEVEL_NAMES
-from roboshape.eval import tables
+from roboshape.report import tables
 
 
 def overall_means(summary: Sequence[Dict], levels: Sequence[str] = LEVEL_NAMES) -> Dict[str, List[float]]:

@@ -107,7 +107,7 @@ def cells_from_summary(summary: Sequence[Dict], task: str) -> Dict[Tuple[str, st
 
 
 def render_milestones(rows: Sequence[Dict], names: Sequence[str]) -> str:
-  """How far rollouts got (roboshape.eval.results.milestone_counts rows): a Markdown table, one row per level, a
+  """How far rollouts got (roboshape.report.results.milestone_counts rows): a Markdown table, one row per level, a
   column per milestone with the share of rollouts that reached it, then the same over the failed rollouts."""
   def share(k: int, n: int) -> str:
     return f"{k / n:.2f} ({k}/{n})" if n else "-"

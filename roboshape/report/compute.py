@@ -11,7 +11,7 @@ the grid ran (a dataset collected elsewhere and linked in shows as the few secon
 from typing import Dict, Sequence, Tuple
 
 from roboshape import rundir
-from roboshape.eval import tables
+from roboshape.report import tables
 
 
 def core_hours(folder: str) -> Dict[str, float]:

@@ -1,4 +1,4 @@
-"""The paper's two claims, answered from a report's cells with 95% intervals (roboshape/eval/stats.py).
+"""The paper's two claims, answered from a report's cells with 95% intervals (roboshape/report/stats.py).
 
   Claim 1: an object-centric encoder (SAVi) succeeds more often than global ones (the family "global": DINO, R3M, AE).
   Claim 2: it loses less under distribution shift than they do.
@@ -31,9 +31,9 @@ import numpy as np
 from roboshape import encoders as registry
 from roboshape.encoders import columns
 from roboshape.errors import UserError
-from roboshape.eval import paper
-from roboshape.eval import stats
-from roboshape.eval import tables
+from roboshape.report import paper
+from roboshape.report import stats
+from roboshape.report import tables
 
 # The encoders' parts in the claims come from the registry (roboshape.encoders.Kind.family): `object_centric()`
 # the encoder under study, `global_encoders()` what the claims compare it with, `controls()` what the tables compare
@@ -400,7 +400,7 @@ def verdict(a: Answer, tasks: Sequence[str], encoders: Sequence[str]) -> str:
   return claim1 + "\n\n" + claim2 + "\n" + ("\n" + options + "\n" if options else "")
 
 
-METHOD = ("Intervals: 95% percentile intervals of a hierarchical bootstrap (roboshape/eval/stats.py, "
+METHOD = ("Intervals: 95% percentile intervals of a hierarchical bootstrap (roboshape/report/stats.py, "
           f"{stats.DRAWS} resamples, seed {stats.SEED}): a cell's training seeds are drawn first, then its start "
           "states (env seeds), one draw for every training seed, every level and both cells of a comparison, "
           "since they all played the same start states. Success is pooled over the cell's rollouts. "

@@ -1,10 +1,10 @@
 """The generated summary block of a published cell's README (e.g. results/small/<task>_<encoder>/README.md).
 
-A published cell (roboshape/eval/publish.py) holds its rollouts in results.csv and the config that ran in
+A published cell (roboshape/report/publish.py) holds its rollouts in results.csv and the config that ran in
 config.json; its README is written by hand. So that the README cannot quote a number those files do not hold, the
-numbers live in a block between two markers that `python -m roboshape.eval.report ROOT` rewrites from the files:
+numbers live in a block between two markers that `python -m roboshape.report.report ROOT` rewrites from the files:
 
-  <!-- summary:begin (generated from results.csv by roboshape.eval.report) -->
+  <!-- summary:begin (generated from results.csv by roboshape.report.report) -->
   per level: success mean ± std (as table.md: over training seeds where the cell has several, else over evaluation
   seeds), successes / rollouts and each seed's count; the milestones reached at the train level; the dataset and
   the control setting config.json records
@@ -21,10 +21,10 @@ from typing import Dict, List, Optional
 from roboshape import envs
 from roboshape import fileio
 from roboshape.errors import UserError
-from roboshape.eval import results as results_lib
-from roboshape.eval import tables
+from roboshape.report import results as results_lib
+from roboshape.report import tables
 
-BEGIN = "<!-- summary:begin (generated from results.csv by roboshape.eval.report) -->"
+BEGIN = "<!-- summary:begin (generated from results.csv by roboshape.report.report) -->"
 END = "<!-- summary:end -->"
 README = "README.md"
 WIDTH = 118                         # the wrap of the block's sentences, as the hand-written READMEs wrap
@@ -100,10 +100,10 @@ def _wrap(text: str) -> str:
 
 
 def render(run: Dict, config: Optional[Dict] = None) -> str:
-  """The block's body for a published run (roboshape.eval.report.load_published) and its config.json (a dict)."""
+  """The block's body for a published run (roboshape.report.report.load_published) and its config.json (a dict)."""
   crashed = sum(r["crashed"] for r in run["summary"])
   lines = [_wrap(f"**{run['task']} x {tables.encoder_name(run['encoder'])}, from this folder's files** "
-                 "(`results.csv`, `config.json`; rewritten by `python -m roboshape.eval.report` over the parent "
+                 "(`results.csv`, `config.json`; rewritten by `python -m roboshape.report.report` over the parent "
                  "folder: edit the files, not this block). " + _what(run)), ""]
   lines += _level_rows(run) + [""]
   if crashed:

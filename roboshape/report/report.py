@@ -5,19 +5,19 @@ workdir itself. Each run contributes its <run>/eval/results.json; a run that was
 weights are absent: <run>/SKIPPED.json written by the grid) or that has no results yet appears in the report as a
 "skipped: <reason>" line and as "-" cells, never as a crash.
 
-`python -m roboshape.eval.report RESULTS_ROOT` builds the same report over runs published one by one
-(roboshape/eval/publish.py: <root>/<task>_<encoder>/results.csv, e.g. results/small) into <root>/report/, and
+`python -m roboshape.report.report RESULTS_ROOT` builds the same report over runs published one by one
+(roboshape/report/publish.py: <root>/<task>_<encoder>/results.csv, e.g. results/small) into <root>/report/, and
 rewrites the generated summary block of each published run's README.md from its results.csv and config.json
-(roboshape/eval/readme.py).
+(roboshape/report/readme.py).
 
 Outputs in <workdir>/report/: report.md, table_<task>.md and table_<task>.tex per task (mean ± std, the paper's
 layout), success_by_level.png (success per level and encoder, a panel per task, with 95% intervals as error bars),
 overall.png (mean success per encoder and level across tasks, the paper's overall figure), summary.json (the
 summary rows and every interval) and results.csv (every rollout of every run). report.md holds, in order: the
-verdict on the paper's two claims (roboshape/eval/claims.py) and on the options beyond the paper, then per task the
-table, each cell's success with its 95% interval (roboshape/eval/stats.py), SAVi's success minus each other
+verdict on the paper's two claims (roboshape/report/claims.py) and on the options beyond the paper, then per task the
+table, each cell's success with its 95% interval (roboshape/report/stats.py), SAVi's success minus each other
 encoder's, each column with options' success minus its plain encoder's, and each encoder's robustness to the shift
-levels; then the core-hours of each cell and row (roboshape/eval/compute.py); then the figures.
+levels; then the core-hours of each cell and row (roboshape/report/compute.py); then the figures.
 """
 import csv
 import json
@@ -33,14 +33,14 @@ from roboshape.envs import TASKS
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.encoders import columns
 from roboshape.errors import UserError
-from roboshape.eval import claims
-from roboshape.eval import compute
-from roboshape.eval import paper
-from roboshape.eval import plots
-from roboshape.eval import publish
-from roboshape.eval import readme
-from roboshape.eval import results as results_lib
-from roboshape.eval import tables
+from roboshape.report import claims
+from roboshape.report import compute
+from roboshape.report import paper
+from roboshape.report import plots
+from roboshape.report import publish
+from roboshape.report import readme
+from roboshape.report import results as results_lib
+from roboshape.report import tables
 
 
 def grid_runs(config, workdir: str) -> List[Tuple[str, str, str]]:
@@ -77,7 +77,7 @@ def build_report(config, workdir: str) -> Dict[str, str]:
 
 def load_published(folder: str) -> Dict:
   """{task, encoder, summary, rollouts, levels, num_seeds, rollouts_per_seed} of a published run
-  (roboshape/eval/publish.py): its results.csv, one row per rollout, read back into rollout records."""
+  (roboshape/report/publish.py): its results.csv, one row per rollout, read back into rollout records."""
   path = os.path.join(folder, rundir.RESULTS_CSV)
   try:
     with open(path, newline="", encoding="utf-8") as f:
@@ -89,7 +89,7 @@ def load_published(folder: str) -> Dict:
                      success=r["success"] == "True", length=int(r["length"])) for r in rows]
   except (ValueError, TypeError, KeyError, csv.Error) as e:    # not UTF-8, cut short, not roboshape's columns
     raise UserError(f"{path} is damaged ({type(e).__name__}): publish the run again from its workdir "
-                    "(roboshape.eval.publish.publish), or restore the file from git.") from None
+                    "(roboshape.report.publish.publish), or restore the file from git.") from None
   if "reached" in rows[0]:          # a CSV of a run evaluated before milestones were recorded has no such column
     for r in rollouts:
       r["reached"] = [m for m in (r["reached"] or "").split("+") if m]
@@ -110,7 +110,7 @@ def published_config(folder: str) -> Dict:
 
 
 def cell_block(folder: str) -> str:
-  """The generated summary block (roboshape/eval/readme.py) of the run published in `folder`, from its files."""
+  """The generated summary block (roboshape/report/readme.py) of the run published in `folder`, from its files."""
   return readme.block(load_published(folder), published_config(folder))
 
 
@@ -130,7 +130,7 @@ def build_published_report(root: str) -> Dict[str, str]:
       found[(run["task"], run["encoder"])] = dict(run, folder=os.path.join(root, name))
   if not found:
     raise UserError(f"{root} holds no published run (<task>_<encoder>/{rundir.RESULTS_CSV}): publish one first "
-                    "(configs/reproduce.py with grid.publish, or roboshape.eval.publish).")
+                    "(configs/reproduce.py with grid.publish, or roboshape.report.publish).")
   datasets = publish.check_datasets({key: run["folder"] for key, run in found.items()})   # one per task, or nothing
   for run in found.values():       # every run read back before any README is rewritten
     readme.write(run["folder"], run, published_config(run["folder"]))
@@ -229,7 +229,7 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
       if table:
         md += [title, "", table]
   md += ["## Compute", "", "Core-hours per cell and per task's row, from each run's stage log (stages.json: every "
-         "attempt's wall time times the cores it held; roboshape/eval/compute.py).", "",
+         "attempt's wall time times the cores it held; roboshape/report/compute.py).", "",
          compute.render(runs, tasks, encoders)]
   if answer.success:
     paths["success_by_level.png"] = plots.levels_with_intervals(
@@ -276,9 +276,9 @@ def run(config, workdir: str) -> None:
 
 
 def main(argv) -> int:
-  """python -m roboshape.eval.report RESULTS_ROOT: the report over the runs published there."""
+  """python -m roboshape.report.report RESULTS_ROOT: the report over the runs published there."""
   if len(argv) != 2 or argv[1].startswith("-"):
-    print("usage: python -m roboshape.eval.report RESULTS_ROOT   (e.g. results/small)", file=sys.stderr)
+    print("usage: python -m roboshape.report.report RESULTS_ROOT   (e.g. results/small)", file=sys.stderr)
     return 2
   try:
     paths = build_published_report(argv[1])
