@@ -10,12 +10,11 @@ the command line as `--config=configs/pick_savi.py:tiny`. Variants:
 Every field can be overridden on the command line, e.g. `--config.policy.train.steps=100`.
 Each section below belongs to one part of the code base (named in its function's docstring).
 """
-import ast
-
 import ml_collections
 
 from roboshape import encoders
 from roboshape import envs
+from roboshape import fields
 from roboshape import rundir
 from roboshape.encoders import columns
 from roboshape.errors import UserError
@@ -340,9 +339,4 @@ def get_config(task: str, encoder: str, variant: str = "paper") -> ml_collection
 def override(config: ml_collections.ConfigDict, item: str) -> None:
   """Sets one field from "dotted.field=VALUE" (VALUE a Python literal, e.g. "savi.decoder.strides=(2, 2)"), for
   scripts that take overrides outside launch.py's --config.x flags."""
-  field, _, value = item.partition("=")
-  *parents, leaf = field.split(".")
-  node = config
-  for name in parents:
-    node = node[name]
-  node[leaf] = ast.literal_eval(value)
+  fields.put(config, *fields.parse(item))

@@ -12,18 +12,17 @@ import math
 import numbers
 from typing import Any, Iterable, Optional, Sequence, Tuple
 
+from roboshape import fields
 from roboshape.errors import UserError
 
 
 def value(config, path: str) -> Any:
   """config's field at dotted `path`; a UserError when it is absent."""
-  node = config
-  for key in path.split("."):
-    if not hasattr(node, "keys") or key not in node:
-      raise UserError(f"the config has no field {path}; build configs with configs/common.py "
-                      "(e.g. configs/pick_savi.py) and override fields with --config.<field>=<value>.")
-    node = node[key]
-  return node
+  try:
+    return fields.get(config, path)
+  except KeyError:
+    raise UserError(f"the config has no field {path}; build configs with configs/common.py "
+                    "(e.g. configs/pick_savi.py) and override fields with --config.<field>=<value>.") from None
 
 
 def is_int(x: Any) -> bool:

@@ -41,6 +41,7 @@ import json
 import os
 from typing import Tuple
 
+from roboshape import fields
 from roboshape import fileio
 from roboshape.errors import UserError
 
@@ -133,38 +134,19 @@ def upgrade_config(data: dict) -> dict:
     return data
   data = json.loads(json.dumps(data))
   for old, new in RENAMED.items():
-    *parents, leaf = old.split(".")
-    node = data
-    for key in parents:
-      node = node.get(key, {})
+    parent, _, leaf = old.rpartition(".")
+    node = fields.get(data, parent, {})
     if leaf in node:
-      _put(data, new, node.pop(leaf))
+      fields.put(data, new, node.pop(leaf), create=True)
   if not data["savi"].get("train", True):
     del data["savi"]["train"]            # every field of it moved
-  _put(data, "pretrain.train.clip_norm_of", "mean")
+  fields.put(data, "pretrain.train.clip_norm_of", "mean", create=True)
   if "ae" in data:
     for field in _AE_FROM_SAVI:
-      value = get_field(data["savi"], field)
+      value = fields.get(data["savi"], field, None)
       if value is not None:
-        _put(data["ae"], field, value)
+        fields.put(data["ae"], field, json.loads(json.dumps(value)), create=True)
   return data
-
-
-def get_field(tree, dotted: str):
-  """The field at `dotted` of a config (a ConfigDict or a config.json's dict), or None where it is absent (e.g. a
-  config.json written before the field existed)."""
-  for key in dotted.split("."):
-    if not hasattr(tree, "keys") or key not in tree:
-      return None
-    tree = tree[key]
-  return tree
-
-
-def _put(tree: dict, dotted: str, value) -> None:
-  *parents, leaf = dotted.split(".")
-  for key in parents:
-    tree = tree.setdefault(key, {})
-  tree[leaf] = json.loads(json.dumps(value))
 
 
 def data_root(config, workdir: str) -> str:

@@ -12,7 +12,7 @@ A module may import its own layer or the layers below it, never one above:
   3  data                    the RLDS dataset
   2  sim, baselines          the simulator bridge; the official R3M / DINO networks
   1  envs, models            the tasks and levels; the Flax modules
-  0  errors, fileio, rundir, checkpoint, ranges, progress
+  0  errors, fields, fileio, rundir, checkpoint, ranges, progress
 
 no two modules import each other, even through others and even within a layer (an import circle), and no module
 reads a private name (a leading underscore) of another module, benchmarks and scripts included.
@@ -27,7 +27,8 @@ from typing import Dict, Iterator, List, Optional, Set, Tuple
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 LAYERS = {
-    "roboshape.errors": 0, "roboshape.fileio": 0, "roboshape.rundir": 0, "roboshape.checkpoint": 0,
+    "roboshape.errors": 0, "roboshape.fields": 0, "roboshape.fileio": 0, "roboshape.rundir": 0,
+    "roboshape.checkpoint": 0,
     "roboshape.ranges": 0, "roboshape.progress": 0,
     "roboshape.envs": 1, "roboshape.models": 1,
     "roboshape.sim": 2, "roboshape.baselines": 2,

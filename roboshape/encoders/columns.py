@@ -18,8 +18,8 @@ An option whose fields all lie in the policy section changes nothing its encoder
 import dataclasses
 from typing import Any, Dict, Tuple
 
+from roboshape import fields as fields_lib
 from roboshape.encoders import registry
-from roboshape import rundir
 from roboshape.errors import UserError
 
 SEPARATOR = "+"
@@ -67,20 +67,16 @@ def _choices() -> str:
 
 def apply(config, column: str) -> None:
   """Sets config.encoder to the column's encoder and the fields its options set."""
-  encoder, fields = parse(column)
+  encoder, settings = parse(column)
   config.encoder = encoder
-  for field, value in fields.items():
-    *parents, leaf = field.split(".")
-    node = config
-    for key in parents:
-      node = node[key]
-    node[leaf] = value
+  for field, value in settings.items():
+    fields_lib.put(config, field, value)
 
 
 def of_config(config) -> str:
   """The column `config` (a ConfigDict, or a config.json's dict) is: its encoder, then each option whose fields
   all hold the values the option sets."""
-  on = [o.name for o in OPTIONS.values() if all(rundir.get_field(config, f) == v for f, v in o.fields)]
+  on = [o.name for o in OPTIONS.values() if all(fields_lib.get(config, f, None) == v for f, v in o.fields)]
   return SEPARATOR.join([config["encoder"]] + on)
 
 
