@@ -10,6 +10,8 @@ One run times, alternately (round after round, the median of each kept, to damp 
                (roboshape/train/sharding.py; the script makes each core a device as launch.py does:
                roboshape/cli.py);
   no dropout:  the one-device step with the policy's dropout at 0 (what the dropout masks cost);
+  frame pool:  the one-device step with policy.frame_pool (each frame's tokens pooled into one before the temporal
+               transformer), its training samples (windows) per core-second beside the plain step's;
   matmul:      a dense float32 2048^3 matmul, and dense matmuls of the trunk's own shapes ([B*L, W] x [W, W] and
                [B*L, W] x [W, 4W], L = H x tokens + H read-out tokens), on the same device.
 Prints each one's time, FLOPs (XLA cost analysis of the one-device step as written: flops.step_flops) and FLOP/s,
@@ -90,8 +92,11 @@ def main():
         f"trunk width {pc.width}, {pc.num_layers} layers, {pc.num_heads} heads, dropout {pc.dropout}", flush=True)
   no_dropout = pc.copy_and_resolve_references()
   no_dropout.dropout = 0.0
+  pooled = pc.copy_and_resolve_references()
+  pooled.frame_pool = True
   steps = {"roboshape": compiled_step(pc, args.tokens, args.token_dim),
-           "no dropout": compiled_step(no_dropout, args.tokens, args.token_dim)}
+           "no dropout": compiled_step(no_dropout, args.tokens, args.token_dim),
+           "frame pool": compiled_step(pooled, args.tokens, args.token_dim)}
   dp = sharding.DataParallel(pc.train.batch_size)
   if dp.num_devices > 1:
     steps[f"{dp.num_devices} devices"] = compiled_step(pc, args.tokens, args.token_dim, dp)
@@ -112,10 +117,14 @@ def main():
   work = steps["roboshape"][1]    # the step's FLOPs: the same work whether one device or several run it
   for name in steps:
     t = float(np.median(times[name]))
-    step_flops = steps[name][1] if name == "no dropout" else work
+    step_flops = steps[name][1] if name in ("no dropout", "frame pool") else work
     print(f"{name + ' step:':<36}{1e3 * t:7.1f} ms ({1 / t:.2f} steps/s), {step_flops / 1e9:.1f} GFLOP -> "
           f"{step_flops / t / 1e9:.1f} GFLOP/s = {step_flops / t / matmul:.2f} of the 2048^3 matmul")
   one = float(np.median(times["roboshape"]))
+  pool = float(np.median(times["frame pool"]))
+  per_core_s = lambda t_step: pc.train.batch_size / t_step / cpus
+  print(f"training samples per core-second: plain {per_core_s(one):.0f}, frame pool {per_core_s(pool):.0f} "
+        f"({one / pool:.2f}x)")
   best = f"{dp.num_devices} devices" if dp.num_devices > 1 else "roboshape"
   t = float(np.median(times[best]))
   ratio, speedup = work / t / matmul, one / t
