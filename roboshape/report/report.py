@@ -35,6 +35,7 @@ from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.report import claims
 from roboshape.report import compute
+from roboshape.report import decompositions
 from roboshape.report import paper
 from roboshape.report import plots
 from roboshape.report import publish
@@ -228,6 +229,14 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
                           claims.robustness_table(answer, task, encoders))):
       if table:
         md += [title, "", table]
+  decomposed = decompositions.table([(t, e, f) for t, e, f in runs if "summary" in loaded.get((t, e), {})],
+                                    tables.encoder_name)
+  if decomposed:
+    md += ["## Decompositions", "", "How the object-centric encoders decompose their task's validation frames at the "
+           "end of pretraining (the selected seed's): FG-ARI and mIoU over every object, then, for the cube, the "
+           "target (or bin) and the hand, the best IoU of any slot with the object's mask averaged over frames, and "
+           "the share of frames where one slot covers the cube with IoU >= 0.5 (roboshape/report/decompositions.py;"
+           " \"-\": validated before the measure existed).", ""] + decomposed + [""]
   md += ["## Compute", "", "Core-hours per cell and per task's row, from each run's stage log (stages.json: every "
          "attempt's wall time times the cores it held; roboshape/report/compute.py).", "",
          compute.render(runs, tasks, encoders)]
