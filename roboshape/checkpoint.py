@@ -1,6 +1,6 @@
 """Orbax checkpoints for every training stage: periodic saves, keep the last N, resume at the saved step.
 
-  ckpt = Checkpointer(rundir.checkpoints(rundir.savi_dir(workdir)), keep=3)
+  ckpt = Checkpointer(rundir.checkpoints(rundir.pretrain_dir(workdir, "savi")), keep=3)
   state, step = ckpt.resume(state)       # the latest step that restores (or `state` itself and step 0)
   ckpt.save(step, state)                 # asynchronous; `ckpt.close()` waits for it
   params, step = ckpt.restore_params_latest(like)   # serving: the parameters alone, no optimizer state

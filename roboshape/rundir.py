@@ -5,7 +5,7 @@
   <workdir>/dataset.json     the identity of the dataset the run was trained on, wherever it lies (`dataset_record`;
                              written by the collect stage, roboshape/data)
   <workdir>/<encoder>/       a pretrained encoder's: checkpoints/, tb/, val_metrics.json/.png (`pretrain_dir`);
-                             savi/ (with figures/) for SAVi (`savi_dir`), ae/ for the AE (`ae_dir`)
+                             savi/ (with figures/) for SAVi, ae/ for the AE (`pretrain_dir`)
   <workdir>/features/<key>/  encoder features cached per (dataset, encoder checkpoint)       (`features_dir`)
   <workdir>/policy/          checkpoints/, tb/, norm_stats.json, encoder.json, summary.json   (`policy_dir`);
                              with policy.train_seeds, one such folder per seed: policy/seed_<s>/; and
@@ -169,14 +169,6 @@ def pretrained_workdir(config, workdir: str) -> str:
 def pretrain_dir(workdir: str, encoder: str) -> str:
   """The folder of an encoder's pretrain stage, named after the encoder (savi/, ae/; absent for one without)."""
   return os.path.join(workdir, encoder)
-
-
-def savi_dir(workdir: str) -> str:
-  return pretrain_dir(workdir, "savi")
-
-
-def ae_dir(workdir: str) -> str:
-  return pretrain_dir(workdir, "ae")
 
 
 def seed_dir(stage_dir: str, seed=None) -> str:

@@ -90,8 +90,6 @@ def _unread_sections(encoder: str) -> set:
   of `encoder` (e.g. the ae section of an old SAVi run, copied from its savi section by rundir.upgrade_config)."""
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
   own = {s.split(".")[0] for s in encoders.get(encoder).sections}
-  if "ae" in own:
-    own.add("savi")     # the AE's token width defaults to savi.slot_size (ae.latent_size=0)
   every = {s.split(".")[0] for name in encoders.names() for s in encoders.get(name).sections}
   return every - own
 

@@ -142,7 +142,7 @@ def test_the_token_width_defaults_to_savis_slot_and_must_be_positive():
 
 
 def test_training_checkpoints_and_records_validation_under_ae(straight):
-  root = rundir.ae_dir(straight["workdir"])
+  root = rundir.pretrain_dir(straight["workdir"], "ae")
   result = straight["result"]
   assert result["step"] == STEPS and [s for s, _ in result["history"]] == list(range(1, STEPS + 1))
   entries = history_lib.load(root, "val_metrics")
@@ -196,7 +196,7 @@ def test_the_pretrain_and_cache_stages_run_on_a_dataset(synthetic_dataset, tmp_p
   config.stages = ("pretrain", "cache")
   workdir = str(tmp_path / "push_ae")
   stages.run(config, workdir)
-  entries = history_lib.load(rundir.ae_dir(workdir), "val_metrics")
+  entries = history_lib.load(rundir.pretrain_dir(workdir, "ae"), "val_metrics")
   assert [e["step"] for e in entries] == [2, 4]
   enc = ae_encoder.load_encoder(workdir)
   features = cache.feature_dir(config, workdir, enc)
@@ -230,7 +230,7 @@ def test_seeds_train_one_ae_each_and_the_lowest_final_mse_is_served(tmp_path):
 
   episodes = [{"image": clip(100)}, {"image": clip(101)}]
   result = pretrain.train_and_select(config, workdir, lambda seed_config: (Source(), episodes), make_validation)
-  root = rundir.ae_dir(workdir)
+  root = rundir.pretrain_dir(workdir, "ae")
   assert sorted(os.listdir(root)) == ["seed_0", "seed_1", "seeds_recon_mse.png", "selected.json"]
   assert result["selected"] == 1 and result["selection"]["metric"] == "recon_mse"
   assert not _tree_equal(result["runs"][0]["params"], result["runs"][1]["params"])

@@ -264,7 +264,7 @@ def _tensorboard_scalars(logdir):
 
 
 def test_training_writes_tensorboard_and_the_decomposition_figure(trained):
-  root = rundir.savi_dir(trained["workdir"])
+  root = rundir.pretrain_dir(trained["workdir"], "savi")
   assert os.path.isfile(os.path.join(root, "figures", f"step_{STEPS:07d}.png"))
   (step, metrics), = trained["result"]["eval"]
   assert step == STEPS and -1 <= metrics["fg_ari"] <= 1 and 0 <= metrics["miou"] <= 1
@@ -512,7 +512,7 @@ def test_a_pooled_model_is_evaluated_at_the_segmentation_resolution(tmp_path):
   assert out["masks"].shape == (1, 6, 3, 8, 8) and out["recon"].shape == (1, 6, 8, 8, 3)
   # The evaluation videos show the 8x8 reconstruction and slots at the frames' 16x16, beside the frames.
   rundir.save_config(config, str(tmp_path))
-  with Checkpointer(rundir.checkpoints(rundir.savi_dir(str(tmp_path)))) as ckpt:
+  with Checkpointer(rundir.checkpoints(rundir.pretrain_dir(str(tmp_path), "savi"))) as ckpt:
     ckpt.save(1, state)
   panels = videos.SaviSlotVideo(str(tmp_path), pad_multiple=8)(video)
   assert panels.shape == (6, 16, 16 * (2 + 3) + 2 * (1 + 3), 3)
@@ -649,7 +649,7 @@ def seeded(tmp_path_factory, trained):
 
 
 def test_no_seeds_keeps_the_single_run_layout(trained, encoder):
-  root = rundir.savi_dir(trained["workdir"])
+  root = rundir.pretrain_dir(trained["workdir"], "savi")
   assert sorted(os.listdir(root)) == ["checkpoints", "figures", "tb", "val_metrics.json", "val_metrics.png"]
   assert trained["result"]["step"] == STEPS and "runs" not in trained["result"]
   assert encoder.identity == f"savi:{os.path.abspath(rundir.checkpoints(root))}@{STEPS}"
@@ -669,7 +669,7 @@ def test_a_run_with_pretrain_from_workdir_serves_that_runs_savi_and_refuses_one_
   served = savi_encoder.load_encoder(workdir)
   assert served.identity == encoder.identity and _tree_equal(served.params, encoder.params)
   assert encoders.build_encoder(config, workdir).identity.startswith(encoder.identity + "+proprio:")
-  assert not os.path.exists(rundir.savi_dir(workdir))
+  assert not os.path.exists(rundir.pretrain_dir(workdir, "savi"))
   # pretrained with another schedule, or on another dataset folder: refused in one line
   config.pretrain.train.steps = STEPS + 1
   rundir.save_config(config, workdir)
@@ -690,7 +690,7 @@ def test_a_run_with_pretrain_from_workdir_serves_that_runs_savi_and_refuses_one_
 
 
 def test_each_seed_trains_in_its_own_folder_with_its_own_params(seeded):
-  root = rundir.savi_dir(seeded["workdir"])
+  root = rundir.pretrain_dir(seeded["workdir"], "savi")
   assert sorted(os.listdir(root)) == ["seed_1", "seed_3", "seeds_fg_ari.png", "selected.json"]
   runs = seeded["result"]["runs"]
   assert list(runs) == list(SEEDS)
@@ -709,7 +709,7 @@ def test_each_seed_trains_in_its_own_folder_with_its_own_params(seeded):
 
 def test_the_seed_with_the_best_final_fg_ari_is_selected(seeded):
   assert seeded["result"]["selected"] == 3
-  with open(rundir.selection_path(rundir.savi_dir(seeded["workdir"]))) as f:
+  with open(rundir.selection_path(rundir.pretrain_dir(seeded["workdir"], "savi"))) as f:
     selection = json.load(f)
   assert selection["selected_seed"] == 3 and selection["metric"] == "fg_ari" and selection["higher_is_better"]
   assert [(r["seed"], r["step"], r["fg_ari"]) for r in selection["seeds"]] == [(3, STEPS, 0.5), (1, STEPS, 0.2)]
@@ -735,7 +735,7 @@ def test_the_encoder_served_is_the_selected_seeds_and_follows_the_selection(seed
   workdir = str(tmp_path / "run")
   shutil.copytree(seeded["workdir"], workdir)
   before = savi_encoder.load_encoder(workdir).identity
-  folder = rundir.seed_dir(rundir.savi_dir(workdir), 1)
+  folder = rundir.seed_dir(rundir.pretrain_dir(workdir, "savi"), 1)
   history = history_lib.load(folder, "val_metrics")
   history[-1]["fg_ari"] = 0.9
   with open(os.path.join(folder, "val_metrics.json"), "w") as f:
@@ -755,7 +755,7 @@ def test_a_missing_or_stale_selection_is_refused_with_one_line(seeded, tmp_path)
   rundir.save_config(config, workdir)
   with pytest.raises(UserError, match=r"selected among seeds \(1, 3\).*run the pretrain stage again"):
     savi_encoder.load_encoder(workdir)
-  os.remove(rundir.selection_path(rundir.savi_dir(workdir)))
+  os.remove(rundir.selection_path(rundir.pretrain_dir(workdir, "savi")))
   with pytest.raises(UserError, match="no SAVi seed is selected yet"):
     savi_encoder.load_encoder(workdir)
 
@@ -765,7 +765,7 @@ def test_a_final_validation_lost_to_a_kill_is_redone_on_resume(seeded, tmp_path)
   (without training) before it selects."""
   workdir = str(tmp_path / "run")
   shutil.copytree(seeded["workdir"], workdir)
-  folder = rundir.seed_dir(rundir.savi_dir(workdir), 1)
+  folder = rundir.seed_dir(rundir.pretrain_dir(workdir, "savi"), 1)
   with open(os.path.join(folder, "val_metrics.json"), "w") as f:
     json.dump([], f)
   result, sources = run_seeds(seeded["config"], workdir, [synthetic_episode(1), synthetic_episode(2)], fail_at=0)

@@ -297,8 +297,8 @@ def test_an_unfinished_stage_says_how_far_its_seeds_and_rollouts_got(tmp_path):
   config.pretrain.train.steps, config.policy.train.steps = 40, 20
   config.eval.levels, config.eval.num_seeds, config.eval.rollouts_per_seed = ("train", "L1"), 1, 2
   run = str(tmp_path / "run")
-  for stage_dir, step in ((rundir.seed_dir(rundir.savi_dir(run), 0), 40), (rundir.seed_dir(rundir.savi_dir(run), 1),
-                                                                          30),
+  savi_dir = rundir.pretrain_dir(run, "savi")
+  for stage_dir, step in ((rundir.seed_dir(savi_dir, 0), 40), (rundir.seed_dir(savi_dir, 1), 30),
                           (rundir.policy_dir(run, 0), 20), (rundir.policy_dir(run, 1), 10)):
     os.makedirs(os.path.join(rundir.checkpoints(stage_dir), str(step)))
     os.makedirs(os.path.join(rundir.checkpoints(stage_dir), f"{step + 10}.orbax-checkpoint-tmp-1"))  # half saved
@@ -338,7 +338,7 @@ def _finished_run(tmp_path, encoder="savi"):
            os.path.join(rundir.eval_dir(workdir), "results.csv"): "level,success\ntrain,1\n",
            os.path.join(rundir.eval_dir(workdir), "table.md"): "| table |",
            os.path.join(rundir.policy_dir(workdir), "val_metrics.json"): "[]",
-           os.path.join(rundir.savi_dir(workdir), "val_metrics.json"): "[1]",
+           os.path.join(rundir.pretrain_dir(workdir, "savi"), "val_metrics.json"): "[1]",
            os.path.join(rundir.videos_dir(workdir), "train_s1_success.mp4"): "mp4",
            os.path.join(rundir.videos_dir(workdir), "train_s1_success.gif"): "gif"}
   for path, text in files.items():
@@ -416,7 +416,7 @@ def test_publish_copies_every_training_seeds_validation_curve(tmp_path):
 
 def test_publish_takes_the_selected_pretraining_seeds_curve_and_last_figure(tmp_path):
   config, workdir = _finished_run(tmp_path)
-  savi_dir = rundir.savi_dir(workdir)
+  savi_dir = rundir.pretrain_dir(workdir, "savi")
   with open(rundir.selection_path(savi_dir), "w") as f:
     json.dump({"selected_seed": 1, "metric": "fg_ari", "seeds": [{"seed": 0}, {"seed": 1}]}, f)
   for seed in (0, 1):

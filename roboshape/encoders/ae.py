@@ -35,7 +35,7 @@ def load_encoder(workdir: str, config=None):
   from roboshape.models.encoder import FrozenEncoder
   workdir, config = savi_encoder.pretrained_source(config or rundir.load_config(workdir), workdir)
   model = ae.model_from_config(config)
-  params, step, directory = savi_encoder.restore(config, workdir, model, rundir.ae_dir(workdir), "AE")
+  params, step, directory = savi_encoder.restore(config, workdir, model, rundir.pretrain_dir(workdir, "ae"), "AE")
   return FrozenEncoder(
       name="ae", params=params, step=functools.partial(ae.frozen_step, model), init_state=lambda batch_size: (),
       num_tokens=1, token_dim=model.latent_size, identity=f"ae:{os.path.abspath(directory)}@{step}")
@@ -63,4 +63,4 @@ registry.register(registry.Kind(
     evaluator="reconstruction",
     model=registry.PretrainModel(build=_model, selection=registry.Selection("recon_mse", False,
                                                                              "reconstruction MSE")),
-    sections=("pretrain", "ae"), check=check, order=2, tokens=_tokens))
+    sections=("pretrain", "ae", "savi.slot_size"), check=check, order=2, tokens=_tokens))

@@ -57,7 +57,8 @@ class Kind:
       ("slots" for SAVi: FG-ARI and per-object IoUs); "" for none. roboshape/stages.py hands it to the pretrain
       stage.
     model: what the pretraining loop trains for it (None for an encoder without a pretrain stage).
-    sections: the config sections it reads beyond those every run reads, e.g. ("pretrain", "savi"):
+    sections: the config sections (or single dotted fields) it reads beyond those every run reads, e.g.
+      ("pretrain", "savi"), or the AE's ("pretrain", "ae", "savi.slot_size"), whose token width defaults to SAVi's:
       roboshape/config_check.py checks them for this encoder alone, so a value only another encoder needs (SAVi's
       decoder at env.resolution=32) never refuses its runs.
     check: config -> None, raising UserError "<field>=<value>: use ..." for the first bad field of its own

@@ -77,7 +77,7 @@ def abstract_params(model, resolution: int):
 
 
 def trained_dir(config, workdir: str, stage_dir: str, title: str) -> str:
-  """The folder of the model a pretrain stage serves from `stage_dir` (savi_dir, ae_dir): stage_dir itself for
+  """The folder of the model a pretrain stage serves from `stage_dir` (rundir.pretrain_dir): stage_dir itself for
   pretrain.train_seeds = (), else the folder of the seed its selected.json names; a UserError saying to run the
   pretrain stage when there is no selection of these seeds."""
   seeds = rundir.train_seeds(config, "pretrain")
@@ -159,7 +159,7 @@ def load(workdir: str, config=None):
   from roboshape.models import savi  # pylint: disable=import-outside-toplevel
   workdir, config = pretrained_source(config or rundir.load_config(workdir), workdir)
   model = savi.model_from_config(config)
-  params, step, _ = restore(config, workdir, model, rundir.savi_dir(workdir), "SAVi")
+  params, step, _ = restore(config, workdir, model, rundir.pretrain_dir(workdir, "savi"), "SAVi")
   return model, params, step
 
 
@@ -175,7 +175,7 @@ def load_encoder(workdir: str, config=None):
   from roboshape.models.encoder import FrozenEncoder
   workdir, config = pretrained_source(config or rundir.load_config(workdir), workdir)
   model = savi.model_from_config(config)
-  params, step, directory = restore(config, workdir, model, rundir.savi_dir(workdir), "SAVi")
+  params, step, directory = restore(config, workdir, model, rundir.pretrain_dir(workdir, "savi"), "SAVi")
   init = savi.initial_slots(model, params, 1)[0]
   return FrozenEncoder(
       name="savi", params=params, step=functools.partial(savi.frozen_step, model),

@@ -60,12 +60,9 @@ Difference = Tuple[str, Any, Any]      # (dotted field, the recorded value, this
 
 def reads(config, stage: str) -> Tuple[str, ...]:
   """The config fields (dotted prefixes) the output of `stage` ("pretrain", "train_policy") depends on: its own
-  and those of the stages it is made from. The encoder's own sections (encoders.Kind.sections; the AE's token width
-  defaults to savi.slot_size), and config.seed where no training seeds are given (with them each seed's run trains
-  with its seed)."""
+  and those of the stages it is made from. The encoder's own sections and fields (encoders.Kind.sections), and
+  config.seed where no training seeds are given (with them each seed's run trains with its seed)."""
   sections = tuple(encoders.get(config.encoder).sections)
-  if "ae" in sections:
-    sections += ("savi.slot_size",)
   pretraining = _DATASET + ("encoder",) + sections
   pretrain_seed = () if tuple(config.pretrain.get("train_seeds", ())) else ("seed",)
   if stage == "pretrain":
