@@ -331,8 +331,10 @@ def test_hand_relative_tokens_carry_each_objects_position_from_the_hand_and_need
     config_check.check(config)
   savi = common.get_config("pick", "savi", "tiny")
   columns.apply(savi, "savi+proprio+rel")
-  with pytest.raises(UserError, match="the savi encoder's tokens do not say where their objects are"):
+  with pytest.raises(UserError, match="slots are placed in 3-D only with the camera's depth: set env.depth=True"):
     config_check.check(savi)
+  savi.env.depth = True
+  config_check.check(savi)
   objects = common.get_config("pick", "objects", "tiny")
   columns.apply(objects, "objects+proprio+rel")
   with pytest.raises(UserError, match="only with depth: set env.depth=True"):

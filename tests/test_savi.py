@@ -105,6 +105,40 @@ def encoder(trained):
   return savi_encoder.load_encoder(trained["workdir"])
 
 
+def test_a_located_savi_appends_where_each_slot_attends_and_its_depth_there(trained, encoder):
+  """savi.located_step: the slots as the plain encoder gives them, then each slot's attended centre (row, col in
+  [-1, 1]) and depth. With a depth that grows linearly down the frame, every located slot's depth is that line at
+  its own row centroid (attention-weighted means of a linear function), which ties the two entries together."""
+  from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
+  located = savi_encoder.load_encoder(trained["workdir"], located=True)
+  assert (located.token_dim, located.inputs) == (encoder.token_dim + 3, ("image", "depth"))
+  assert located.identity == encoder.identity + ":located"
+  frames = trained["episodes"][1]["image"]
+  size = frames.shape[1]
+  rows = (2.0 * np.arange(size) + 1.0) / size - 1.0                                 # pixel centres in [-1, 1]
+  depth = np.broadcast_to((1000.0 + 500.0 * rows)[None, :, None], frames.shape[:3]).astype(np.uint16)
+  tokens = np.asarray(located.encode_episode({"image": frames, "depth": depth}))
+  np.testing.assert_allclose(tokens[..., :-3], np.asarray(encoder.encode_episode(frames)), atol=1e-5)
+  row, col, metres = tokens[..., -3], tokens[..., -2], tokens[..., -1]
+  on = metres > 0
+  assert on.mean() > 0.5 and np.all(np.abs(row[on]) <= 1) and np.all(np.abs(col[on]) <= 1)
+  # depth rounds to whole millimetres per pixel; a cell averages pixels, so the line holds to about a millimetre
+  np.testing.assert_allclose(metres[on], 1.0 + 0.5 * row[on], atol=2e-3)
+  assert not tokens[..., -3:][~on].any()
+  where, valid = located.points(tokens)
+  np.testing.assert_array_equal(np.asarray(valid), on)
+  np.testing.assert_allclose(np.asarray(where), np.asarray(camera.unproject(row, col, metres)), atol=1e-6)
+  config = trained["config"].copy_and_resolve_references()
+  config.policy.proprio = config.policy.hand_relative = True                      # savi+proprio+rel
+  served = encoders.build_encoder(config, trained["workdir"])
+  assert set(served.inputs) == {"image", "depth", "state"} and "+relative:" in served.identity
+  from roboshape.envs import state as state_lib  # pylint: disable=import-outside-toplevel
+  state = np.zeros((len(frames), state_lib.DIM), np.float32)                      # the hand at the world's origin
+  relative = np.asarray(served.encode_episode({"image": frames, "depth": depth, "state": state}))
+  width = encoder.token_dim + 3
+  np.testing.assert_allclose(relative[:, :-1, width:width + 3], np.where(on[..., None], where / 0.1, 0), atol=1e-4)
+
+
 def _tree_equal(a, b):
   return all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b)))
 

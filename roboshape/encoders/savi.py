@@ -163,11 +163,14 @@ def load(workdir: str, config=None):
   return model, params, step
 
 
-def load_encoder(workdir: str, config=None):
+def load_encoder(workdir: str, config=None, located: bool = False):
   """The SAVi encoder trained in `workdir`, frozen: tokens are a frame's K slots [B, K, D].
 
   The state is the predicted slots for the next frame [B, K, D]; `init_state(B)` gives the learned first-frame
   slots drawn with a fixed key (savi.initial_slots), so encoding is deterministic and the same for every episode.
+  `located`: it also reads the camera's depth and appends each slot's location to its token ([B, K, D + 3]:
+  models/savi.py located_step), and says where each slot's object is (FrozenEncoder.points, for
+  policy.hand_relative).
   """
   # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp
@@ -177,15 +180,35 @@ def load_encoder(workdir: str, config=None):
   model = savi.model_from_config(config)
   params, step, directory = restore(config, workdir, model, rundir.pretrain_dir(workdir, "savi"), "SAVi")
   init = savi.initial_slots(model, params, 1)[0]
-  return FrozenEncoder(
-      name="savi", params=params, step=functools.partial(savi.frozen_step, model),
-      init_state=lambda batch_size: jnp.broadcast_to(init, (batch_size, *init.shape)),
-      num_tokens=model.num_slots, token_dim=model.slot_size, identity=f"savi:{os.path.abspath(directory)}@{step}")
+  identity = f"savi:{os.path.abspath(directory)}@{step}"
+  common = dict(name="savi", params=params, num_tokens=model.num_slots,
+                init_state=lambda batch_size: jnp.broadcast_to(init, (batch_size, *init.shape)))
+  if not located:
+    return FrozenEncoder(step=functools.partial(savi.frozen_step, model), token_dim=model.slot_size,
+                         identity=identity, **common)
+  return FrozenEncoder(step=functools.partial(_located_step, model), token_dim=model.slot_size + 3,
+                       identity=f"{identity}:located", inputs=("image", "depth"), points=slot_points, **common)
+
+
+def _located_step(model, params, state, obs):
+  from roboshape.models import savi  # pylint: disable=import-outside-toplevel
+  return savi.located_step(model, params, state, obs["image"], obs["depth"])
+
+
+def slot_points(tokens):
+  """tokens [..., K, D + 3] of a located SAVi -> (world points [..., K, 3], valid [..., K]): each slot's attended
+  centre at its attended depth, through the front camera's calibration (roboshape/envs/camera.py), as the objects
+  tokens' centroids are; valid where the slot attends somewhere with a depth."""
+  from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
+  row, col, depth = tokens[..., -3], tokens[..., -2], tokens[..., -1]
+  return camera.unproject(row, col, depth), depth > 0
 
 
 def _build(config, workdir: str):
-  del config          # the workdir's own config.json: the one its checkpoints were trained with
-  return load_encoder(workdir)
+  """The SAVi of the workdir (its own config.json: the one its checkpoints were trained with), located when the
+  run's `config` asks for policy.hand_relative."""
+  located = bool(config is not None and config.get("policy", {}).get("hand_relative", False))
+  return load_encoder(workdir, located=located)
 
 
 def _model(config):
@@ -199,4 +222,7 @@ registry.register(registry.Kind(
     evaluator="slots",
     model=registry.PretrainModel(build=_model, selection=registry.Selection("fg_ari", True, "FG-ARI")),
     sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True, family="object-centric", order=3,
-    tokens=lambda config: f"{config.savi.num_slots} x {config.savi.slot_size}"))
+    tokens=lambda config: f"{config.savi.num_slots} x {config.savi.slot_size}",
+    points=lambda config: "" if config.env.get("depth", False) else (
+        "its slots are placed in 3-D only with the camera's depth: set env.depth=True (and collect the dataset "
+        "with it)")))

@@ -466,3 +466,35 @@ def frozen_step(model: SAVi, params, state: jax.Array, frames: jax.Array) -> Tup
   """The FrozenEncoder step: (params, predicted slots [B, K, D], frames uint8 [B, H, W, 3]) -> (the frame's slots
   [B, K, D], the predicted slots of the next frame [B, K, D]); an episode's first state is `initial_slots`."""
   return model.apply({"params": params}, to_float(frames), state, method=SAVi.step)
+
+
+# Entries a located step appends to each slot: where the slot attends in the frame and how far that is.
+LOCATION_FIELDS = ("row", "col", "depth")
+MIN_ATTENTION = 0.5   # a slot attending to less than this many feature cells in all is "nowhere" (no location)
+
+
+def located_step(model: SAVi, params, state: jax.Array, frames: jax.Array,
+                 depth: jax.Array) -> Tuple[jax.Array, jax.Array]:
+  """`frozen_step` with each slot's location appended: (params, predicted slots [B, K, D], frames uint8 [B, H, W, 3],
+  depth uint16 [B, H, W] millimetres) -> (tokens [B, K, D + 3], the next frame's predicted slots).
+
+  The location of a slot is where its last slot-attention iteration attends on the feature grid: the attention-
+  weighted mean of the cells' centres (row, col, in [-1, 1] of the frame, row 0 at the top, as the objects tokens'
+  centroids) and of the camera depth averaged over each cell (metres). A slot whose attention adds up to less than
+  MIN_ATTENTION cells gets zeros, which read as "no location". Nothing here knows which slot is which object.
+  """
+  (slots, predicted), variables = model.apply({"params": params}, to_float(frames), state, method=SAVi.step,
+                                              mutable=["intermediates"])
+  attention = variables["intermediates"]["processor"]["corrector"]["attention"][-1]     # [B, K, N]
+  b, k, n = attention.shape
+  grid = math.isqrt(n)
+  centres = (2.0 * jnp.arange(grid, dtype=jnp.float32) + 1.0) / grid - 1.0
+  rows, cols = jnp.repeat(centres, grid), jnp.tile(centres, grid)                        # [N], row-major cells
+  metres = depth.astype(jnp.float32) / 1000.0
+  h, w = metres.shape[-2:]
+  cells = metres.reshape(b, grid, h // grid, grid, w // grid).mean(axis=(2, 4)).reshape(b, n)
+  mass = attention.sum(axis=-1)                                                          # [B, K]
+  weights = attention / jnp.maximum(mass, 1e-6)[..., None]
+  where = jnp.stack([weights @ rows, weights @ cols, jnp.einsum("bkn,bn->bk", weights, cells)], axis=-1)
+  where = jnp.where((mass >= MIN_ATTENTION)[..., None], where, 0.0)
+  return jnp.concatenate([slots, where.astype(slots.dtype)], axis=-1), predicted
