@@ -257,8 +257,9 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       # with proprio: each token also carries its object's position relative to the tool centre point, for the
       # encoders whose tokens say where their object is (roboshape/encoders/proprio.py)
       hand_relative=False,
-      # pool each frame's tokens into one (a set encoder) before the temporal transformer: T tokens, not T*N
-      frame_pool=False,
+      # pool each frame's tokens into one (a set encoder) before the temporal transformer: T tokens, not T*N;
+      # :small's since it lifted pick's object tokens and cut their cost (results/small/recipe/README.md)
+      frame_pool=_pick(variant, paper=False, small=True, tiny=False),
       cache_dtype="float32",    # dtype of the cached encoder features ("float16" halves the cache)
       # () one policy trained with config.seed, in <workdir>/policy/; (s1, s2, ...) one policy per training seed, in
       # policy/seed_<s>/, each evaluated on the same evaluation seeds; tables then give mean ± std over them
