@@ -281,7 +281,7 @@ def check_single(config) -> None:
 def _check_hand_relative(config, kind: encoders.Kind) -> None:
   """policy.hand_relative needs the hand's pose (policy.proprio) and an encoder whose tokens say where their objects
   are (Kind.points)."""
-  if not config.policy.get("hand_relative", False):
+  if not config.policy.hand_relative:
     return
   if not config.policy.proprio:
     raise UserError("policy.hand_relative=True needs the tool centre point: set policy.proprio=True too.")

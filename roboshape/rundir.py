@@ -36,6 +36,7 @@ left the configs are in REMOVED; a run trained with one of them that today's cod
 `check_no_chunks` where a workdir's policy is loaded or its run resumed.
 """
 import contextlib
+import copy
 import fcntl
 import json
 import os
@@ -74,6 +75,29 @@ _CHUNKING = "action chunking lost its comparison (results/small/recipe/README.md
 REMOVED = {
     "policy.chunk": (1, _CHUNKING),
     "policy.eval.ensemble_decay": (0.01, _CHUNKING),
+}
+# Fields added to the configs after runs were saved, dotted name -> the value a run saved before the field existed
+# ran with (the behaviour the code had then, which today's default for the field need not be). `load_config` reads
+# every config.json through this table, so code reads today's fields of any run's config without defaults of its
+# own, and a fingerprint record lacking one compares as that value (roboshape/train/fingerprint.py). A field added
+# to configs/common.py gets its entry here; tests/test_rundir.py reads the published configs back through it.
+ADDED = {
+    "env.depth": False,
+    "pretrain.train.depth_weight": 0.0,
+    "pretrain.train_seeds": (),
+    "pretrain.from_workdir": "",
+    "savi.pool": 1,
+    "savi.init_mean": "shared",
+    "savi.slot_gradient": "full",
+    "savi.predictor.identity_init": False,
+    "savi.decoder.rgb": "spatial",
+    "savi.decoder.position": "coords",
+    "state.withhold": (),
+    "state.relative": True,
+    "policy.proprio": False,
+    "policy.hand_relative": False,
+    "policy.frame_pool": False,
+    "policy.train_seeds": (),
 }
 # The AE's fields that were read from the savi section before the AE had its own (its ae section's defaults).
 _AE_FROM_SAVI = ("pool", "encoder", "decoder.grid_size", "decoder.features", "decoder.kernel_size",
@@ -127,26 +151,43 @@ def check_no_chunks(config, workdir: str) -> None:
 
 def upgrade_config(data: dict) -> dict:
   """A config.json's dict in today's fields: one written before the pretrain section existed has its pretraining
-  settings moved there (RENAMED), its clip stated on the mean loss (as it was then: pretrain.train.clip_norm_of),
-  and, with an ae section, the AE's frame encoder, decoder and pool copied from the savi section it was read from.
-  Today's configs come back as they are."""
-  if "pretrain" in data or "savi" not in data:
-    return data
-  data = json.loads(json.dumps(data))
-  for old, new in RENAMED.items():
-    parent, _, leaf = old.rpartition(".")
-    node = fields.get(data, parent, {})
-    if leaf in node:
-      fields.put(data, new, node.pop(leaf), create=True)
-  if not data["savi"].get("train", True):
-    del data["savi"]["train"]            # every field of it moved
-  fields.put(data, "pretrain.train.clip_norm_of", "mean", create=True)
-  if "ae" in data:
-    for field in _AE_FROM_SAVI:
-      value = fields.get(data["savi"], field, None)
-      if value is not None:
-        fields.put(data["ae"], field, json.loads(json.dumps(value)), create=True)
+  settings moved there (RENAMED) and its clip stated on the mean loss (as it was then:
+  pretrain.train.clip_norm_of); one written before the AE had its own section gets it as the AE read it then, the
+  savi section's frame encoder, decoder and pool; and every field of ADDED it lacks reads the value such runs ran
+  with. The dict given is left as it was."""
+  data = copy.deepcopy(data)
+  if "pretrain" not in data and "savi" in data:
+    for old, new in RENAMED.items():
+      parent, _, leaf = old.rpartition(".")
+      node = fields.get(data, parent, {})
+      if leaf in node:
+        fields.put(data, new, node.pop(leaf), create=True)
+    if not data["savi"].get("train", True):
+      del data["savi"]["train"]            # every field of it moved
+    fields.put(data, "pretrain.train.clip_norm_of", "mean", create=True)
+    if "ae" in data:                       # the AE read these from the savi section, whatever its own said
+      _ae_from_savi(data)
+  if "savi" in data and "task" in data and "ae" not in data:
+    _ae_from_savi(data)
+    data["ae"]["latent_size"] = 0          # 0: savi.slot_size, the only width there was
+  for field in predates(data):
+    fields.put(data, field, ADDED[field], create=True)
   return data
+
+
+def _ae_from_savi(data: dict) -> None:
+  for field in _AE_FROM_SAVI:
+    value = fields.get(data["savi"], field, None)
+    if value is not None:
+      fields.put(data, f"ae.{field}", json.loads(json.dumps(value)), create=True)
+
+
+def predates(data: dict) -> Tuple[str, ...]:
+  """The fields of ADDED that a saved config's dict lacks: those added to the configs after it was written."""
+  return tuple(f for f in ADDED if fields.get(data, f, _MISSING) is _MISSING)
+
+
+_MISSING = object()
 
 
 def data_root(config, workdir: str) -> str:

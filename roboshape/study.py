@@ -96,8 +96,8 @@ def _unread_sections(encoder: str) -> set:
 
 def changed_fields(config: Dict, baseline: Optional[Dict] = None) -> str:
   """"a=1; b.c=(2, 3)": the fields of a run's config.json that differ from its experiment's defaults (a field added
-  to the configs after the run was made is not among its config's, and is not a change; one removed since is
-  compared with the default it had, rundir.REMOVED), or from `baseline` where it names the field: a study's
+  to the configs after the run was made reads as the value the run had, rundir.ADDED, a change where today's
+  default differs; one removed since is compared with the default it had, rundir.REMOVED), or from `baseline` where it names the field: a study's
   baseline.json, {"*" or a task: {"dotted.field": value}}, the task's entries over "*"'s."""
   from configs import common  # pylint: disable=import-outside-toplevel
   scale = config["variant"].partition("_")[0]

@@ -12,12 +12,12 @@ batches of 32).
 import os
 
 import jax
-import ml_collections
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
+from configs import common
 from roboshape.baselines import convert
 from roboshape.baselines import dino
 from roboshape.baselines import r3m
@@ -29,8 +29,11 @@ import torch_baselines as ref
 TOL = 1e-4
 
 
-def _cfg(**kw):
-  return ml_collections.ConfigDict(kw)
+def _cfg(arch, **kw):
+  """A baseline's config section: configs/common.py's defaults of the network `arch` names, with `kw` set."""
+  section = common.baseline_config("small")["r3m" if arch.startswith("resnet") else "dino"]
+  section.update(dict(arch=arch, **kw))
+  return section
 
 
 def _frames(n, side=64, seed=0):

@@ -159,6 +159,57 @@ def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields(t
   assert (config.pretrain.train.clip_norm, config.pretrain.train.clip_norm_of) == (0.05, "mean")
   assert config.pretrain.eval.frames == old["savi"]["eval"]["frames"] and "train" not in config.savi
   assert config.ae.encoder.to_dict() == old["savi"]["encoder"] and config.ae.pool == old["savi"]["pool"]
-  assert "proprio" not in old["policy"] and study.changed_fields(config.to_dict()) == "data.train_episodes=200"
+  # the fields it predates read as the run ran (rundir.ADDED): the one whose :small default changed since is a change
+  assert "frame_pool" not in old["policy"] and config.policy.frame_pool is False
+  assert study.changed_fields(config.to_dict()) == "data.train_episodes=200; policy.frame_pool=False"
   today = common.get_config("push", "ae", "small").to_dict()
   assert rundir.upgrade_config(today) == today                        # today's configs come back as they are
+
+
+def _flat_keys(tree, prefix=""):
+  return {k for key, value in tree.items()
+          for k in (_flat_keys(value, f"{prefix}{key}.") if isinstance(value, dict) and value else {prefix + key})}
+
+
+def test_every_saved_config_reads_back_with_every_field_of_todays_configs(tmp_path):
+  """Every config.json on file (the old fixture, each published run's) reads back through rundir.ADDED with every
+  field today's config of its experiment has, so code reads no default of its own; a field added to
+  configs/common.py without its entry in ADDED fails here. Read back, its fields keep the values saved."""
+  import glob  # pylint: disable=import-outside-toplevel
+  import shutil  # pylint: disable=import-outside-toplevel
+  from roboshape import rundir  # pylint: disable=import-outside-toplevel
+  paths = [os.path.join(ROOT, "tests", "fixtures", "config_before_pretrain_section.json")] + sorted(
+      glob.glob(os.path.join(ROOT, "results", "small", "*", rundir.CONFIG_FILE)))
+  assert len(paths) > 10
+  for path in paths:
+    shutil.copy(path, tmp_path / rundir.CONFIG_FILE)
+    config = rundir.load_config(str(tmp_path)).to_dict()
+    today = common.get_config(config["task"], config["encoder"], config["variant"].partition("_")[0]).to_dict()
+    missing = _flat_keys(today) - _flat_keys(config)
+    assert not missing, (path, sorted(missing))
+    with open(path) as f:
+      saved = json.load(f)
+    if "pretrain" in saved:                                     # written after the last renaming
+      assert config["policy"]["train"] == saved["policy"]["train"]
+      assert all(config["policy"].get(k) == v for k, v in saved["policy"].items() if k != "train" and
+                 not isinstance(v, list))
+
+
+def test_a_policy_record_from_before_a_field_compares_as_the_value_it_ran_with(tmp_path):
+  """A policy's fingerprint.json written before policy.frame_pool existed: a rerun asking for the frame pool differs
+  from it (the policy ran without one), said in one line with both values; a rerun without it resumes."""
+  from roboshape import rundir  # pylint: disable=import-outside-toplevel
+  from roboshape.train import fingerprint  # pylint: disable=import-outside-toplevel
+  config = common.get_config("push", "state", "tiny")
+  workdir = str(tmp_path)
+  folder = rundir.policy_dir(workdir)
+  record = {k: v for k, v in fingerprint.fingerprint(config, "train_policy").items() if k != "policy.frame_pool"}
+  os.makedirs(folder)
+  with open(rundir.fingerprint_path(folder), "w") as f:
+    json.dump({"stage": "train_policy", "fields": record}, f)
+  with open(os.path.join(folder, "checkpoint"), "w") as f:
+    f.write("held")
+  assert fingerprint.check(config, workdir).set_aside == {}            # False then, False now: the same
+  config.policy.frame_pool = True
+  with pytest.raises(UserError, match=r"policy\.frame_pool: False there, True in this config"):
+    fingerprint.check(config, workdir)

@@ -92,11 +92,11 @@ def load_encoder(cfg, resolution: int) -> FrozenEncoder:
   """
   if cfg.arch not in vit.ARCHS:
     raise UserError(f"unknown DINO arch {cfg.arch!r}; choose one of {', '.join(vit.ARCHS)}")
-  input_size = int(cfg.get("input_size", 224))
+  input_size = int(cfg.input_size)
   side = input_size or resolution
   if side < MIN_SIDE:
     raise UserError(f"DINO needs frames of at least {MIN_SIDE} x {MIN_SIDE} pixels, got {side}")
-  patch_tokens = bool(cfg.get("patch_tokens", False))
+  patch_tokens = bool(cfg.patch_tokens)
   path = weights_path(cfg)
   model, params = load_params(path, cfg.arch)
   return FrozenEncoder(

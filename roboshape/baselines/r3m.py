@@ -85,7 +85,7 @@ def load_encoder(cfg, resolution: int) -> FrozenEncoder:
   """
   if cfg.arch not in resnet.ARCHS:
     raise UserError(f"unknown R3M arch {cfg.arch!r}; choose one of {', '.join(resnet.ARCHS)}")
-  input_size = int(cfg.get("input_size", 224))
+  input_size = int(cfg.input_size)
   if (input_size or resolution) < MIN_SIDE:
     raise UserError(f"R3M needs inputs of at least {MIN_SIDE} x {MIN_SIDE} pixels, got {input_size or resolution}")
   path = weights_path(cfg)

@@ -68,7 +68,7 @@ def config_summary(config) -> Dict[str, Any]:
       "val_episodes": targets["val"],
       "train_seed_base": SEED_BASES["train"],
       "val_seed_base": SEED_BASES["val"],
-      "depth": bool(config.env.get("depth", False)),
+      "depth": bool(config.env.depth),
       # Every dataset collected now stores the privileged state; not compared (_SUMMARY_FIELDS): a dataset of an
       # earlier version, without it, serves every encoder that does not need it.
       "state": True,

@@ -131,7 +131,7 @@ def _build(config, workdir: str):
   when `config.env.depth` is true (config None: no depth)."""
   del workdir
   from roboshape.models.encoder import FrozenEncoder  # pylint: disable=import-outside-toplevel
-  depth = bool(config is not None and config.env.get("depth", False))
+  depth = bool(config is not None and config.env.depth)
   kept = token_ids(int(config.env.max_distractors)) if config is not None else tuple(range(NUM_IDS))
   inputs = ("image", "segmentation") + (("depth",) if depth else ())
   layout = hashlib.sha1(f"ids {kept}: {describe()}".encode()).hexdigest()[:12]
@@ -146,5 +146,5 @@ registry.register(registry.Kind(
     description="ground-truth object tokens from the segmentation, one per id (control: the upper bound of SAVi); "
                 "reads depth too with env.depth", family="control", order=4,
     tokens=lambda config: f"{len(token_ids(config.env.max_distractors))} x {DIM}",
-    points=lambda config: "" if config.env.get("depth", False) else (
+    points=lambda config: "" if config.env.depth else (
         "its tokens place objects in 3-D only with depth: set env.depth=True (and collect the dataset with it)")))

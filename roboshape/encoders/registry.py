@@ -160,7 +160,7 @@ def build_encoder(config, workdir: str):
   tokens followed by a proprioception token per frame, and with `config.policy.hand_relative` each token's object
   relative to the hand (roboshape/encoders/proprio.py)."""
   encoder = get(config.encoder).build(config, workdir)
-  if config.get("policy", {}).get("proprio", False):
+  if config.policy.proprio:
     from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
-    encoder = proprio.with_proprio(encoder, hand_relative=bool(config.policy.get("hand_relative", False)))
+    encoder = proprio.with_proprio(encoder, hand_relative=bool(config.policy.hand_relative))
   return encoder

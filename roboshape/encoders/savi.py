@@ -207,7 +207,7 @@ def slot_points(tokens):
 def _build(config, workdir: str):
   """The SAVi of the workdir (its own config.json: the one its checkpoints were trained with), located when the
   run's `config` asks for policy.hand_relative."""
-  located = bool(config is not None and config.get("policy", {}).get("hand_relative", False))
+  located = bool(config is not None and config.policy.hand_relative)
   return load_encoder(workdir, located=located)
 
 
@@ -223,6 +223,6 @@ registry.register(registry.Kind(
     model=registry.PretrainModel(build=_model, selection=registry.Selection("fg_ari", True, "FG-ARI")),
     sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True, family="object-centric", order=3,
     tokens=lambda config: f"{config.savi.num_slots} x {config.savi.slot_size}",
-    points=lambda config: "" if config.env.get("depth", False) else (
+    points=lambda config: "" if config.env.depth else (
         "its slots are placed in 3-D only with the camera's depth: set env.depth=True (and collect the dataset "
         "with it)")))

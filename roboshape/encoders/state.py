@@ -68,19 +68,19 @@ def _step(params, carry, obs):
 
 
 def withheld(config) -> tuple:
-  """The fields config.state.withhold names (() without a config, or for one written before the section existed)."""
-  return () if config is None else tuple(config.get("state", {}).get("withhold", ()))
+  """The fields config.state.withhold names (() without a config)."""
+  return () if config is None else tuple(config.state.withhold)
 
 
 def relative_on(config) -> bool:
-  """config.state.relative (True without a config, or for one written before the option existed)."""
-  return True if config is None else bool(config.get("state", {}).get("relative", True))
+  """config.state.relative (True without a config)."""
+  return True if config is None else bool(config.state.relative)
 
 
 def check(config) -> None:
   """Raises UserError unless state.withhold is a tuple of distinct FIELDS names."""
   names = tuple(name for name, _, _ in state_lib.FIELDS)
-  value = config.get("state", {}).get("withhold", ())
+  value = config.state.withhold
   if isinstance(value, str) or not isinstance(value, (tuple, list)) or any(v not in names for v in value) or len(
       set(value)) != len(value):
     raise UserError(f"state.withhold={value!r}: use a tuple of distinct state fields among {', '.join(names)} "

@@ -176,7 +176,7 @@ def net_from_config(policy_config) -> PolicyNet:
   c = policy_config
   return PolicyNet(width=c.width, num_layers=c.num_layers, num_heads=c.num_heads, mlp_ratio=c.mlp_ratio,
                    dropout=c.dropout, max_history=c.history, action_dim=c.action_dim, num_modes=c.num_modes,
-                   min_scale=c.min_scale, frame_pool=bool(c.get("frame_pool", False)))
+                   min_scale=c.min_scale, frame_pool=bool(c.frame_pool))
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -52,7 +52,7 @@ class EnvSpec:
     return cls(task=config.task, level=level or "train", resolution=int(env.resolution),
                min_distractors=int(env.min_distractors), max_distractors=int(env.max_distractors),
                max_episode_steps=int(env.max_episode_steps), sim_backend=str(env.sim_backend),
-               depth=bool(env.get("depth", False)))
+               depth=bool(env.depth))
 
 
 def check_seeds(seeds: Iterable) -> List[int]:

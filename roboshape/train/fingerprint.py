@@ -29,7 +29,7 @@ roboshape/eval/closed_loop.py, policy_fingerprint).
 Not differences (`NOT_READ`): how long (the steps: more steps resume), how often (logging, checkpoints,
 validation), where (data.dir, pretrain.from_workdir), with which workers, which training seeds run (each seed's run
 is trained alike), and what only validation or control reads. A field a record lacks (one added to the configs
-since) is not compared. A workdir written before stages recorded fingerprints is read with its config.json as the
+since) compares as the value the stage ran with before it existed (rundir.ADDED). A workdir written before stages recorded fingerprints is read with its config.json as the
 record of every stage that holds output, said once, when that record is written beside the output.
 """
 import dataclasses
@@ -64,10 +64,10 @@ def reads(config, stage: str) -> Tuple[str, ...]:
   config.seed where no training seeds are given (with them each seed's run trains with its seed)."""
   sections = tuple(encoders.get(config.encoder).sections)
   pretraining = _DATASET + ("encoder",) + sections
-  pretrain_seed = () if tuple(config.pretrain.get("train_seeds", ())) else ("seed",)
+  pretrain_seed = () if tuple(config.pretrain.train_seeds) else ("seed",)
   if stage == "pretrain":
     return pretraining + pretrain_seed
-  policy_seed = () if tuple(config.policy.get("train_seeds", ())) else ("seed",)
+  policy_seed = () if tuple(config.policy.train_seeds) else ("seed",)
   return pretraining + ("policy",) + tuple(dict.fromkeys(pretrain_seed + policy_seed))
 
 
@@ -129,7 +129,7 @@ def recorded(config, workdir: str, stage: str) -> Tuple[Optional[Dict[str, Any]]
   if os.path.exists(path):
     try:
       with open(path, encoding="utf-8") as f:
-        return dict(json.load(f)["fields"]), False
+        return _with_added(dict(json.load(f)["fields"]), config, stage), False
     except (OSError, ValueError, KeyError, TypeError) as e:
       raise UserError(f"{path} is damaged ({type(e).__name__}: {e}): it records the config fields the {stage} "
                       f"stage's output beside it was made with; restore it, or run with --redo={stage} to set that "
@@ -137,6 +137,14 @@ def recorded(config, workdir: str, stage: str) -> Tuple[Optional[Dict[str, Any]]
   if not os.path.exists(rundir.config_path(workdir)):
     return None, False
   return fingerprint(rundir.load_config(workdir), stage), True
+
+
+def _with_added(record: Dict[str, Any], config, stage: str) -> Dict[str, Any]:
+  """A fingerprint record with each field the stage reads that was added to the configs after it was written
+  (rundir.ADDED) at the value the stage ran with then."""
+  wanted = reads(config, stage)
+  return {**{f: json.loads(json.dumps(v)) for f, v in rundir.ADDED.items()
+             if f not in record and _under(f, wanted) and not _under(f, NOT_READ)}, **record}
 
 
 def differences(old: Dict[str, Any], new: Dict[str, Any]) -> List[Difference]:

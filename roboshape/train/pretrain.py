@@ -93,7 +93,7 @@ def clip_norm(train_config, values: int) -> float:
   train.clip_norm_of = "mean"; with "sum" (a bound on the gradient of the loss summed over the clip's `values`
   pixel values, which is `values` times larger) divided by `values`."""
   clip = float(train_config.clip_norm)
-  return clip / values if train_config.get("clip_norm_of", "mean") == "sum" else clip
+  return clip / values if train_config.clip_norm_of == "sum" else clip
 
 
 def make_optimizer(train_config, values: int) -> optax.GradientTransformation:
