@@ -3,10 +3,8 @@
 
 Command:  python launch.py --config=configs/reproduce.py[:tiny|small|paper] --workdir=runs/reproduce_<variant>
           (`make demo` runs the :tiny variant into runs/demo)
-Runtime:  :tiny a couple of minutes on a 2-core CPU; :small about 70 core-hours, at least 36 hours on a 2-core CPU's
-          two lanes (measured from the published cells' stage logs, results/small/report/report.md "Compute": 61.3
-          core-hours for every cell but place x SAVi+proprio, which adds about 10); :paper GPU-days
-          (benchmarks/gpu_scaleup.py estimates them).
+Runtime:  results/small/README.md for :small (from the published cells' stage logs); benchmarks/gpu_scaleup.py
+          projects :paper's.
 Results:  results/small/README.md (one folder per cell, results/small/<task>_<column>/README.md)
 
 Variants:
