@@ -25,16 +25,21 @@ from roboshape.train import pretrain  # pylint: disable=wrong-import-position
 
 
 def synthetic_inputs(comp, shape):
-  """(state, video, depth, key) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B, T, H,
-  W, 3], placed as the pretrain stage places them: the state replicated, the batch split. `depth` is the depth
-  target (uint16 mm) of a variant that predicts depth (:small), else None."""
+  """(state, video, depth, first, key) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B,
+  T, H, W, 3], placed as the pretrain stage places them: the state replicated, the batch split. `depth` is the depth
+  target (uint16 mm) of a variant that predicts depth (:small), else None; `first` the clips' first segmentation
+  [B, H, W] (random ids) of a conditional SAVi, else None."""
   state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
   rng = np.random.default_rng(0)
   video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
   depth = None
   if comp.depth_weight > 0:
     depth = jax.device_put(rng.integers(300, 2000, shape[:-1], dtype=np.uint16), comp.dp.batch)
-  return state, video, depth, jax.random.key(1)
+  first = None
+  if comp.conditional:
+    first = jax.device_put(rng.integers(0, comp.model.num_slots, (shape[0], *shape[2:4]), dtype=np.uint8),
+                           comp.dp.batch)
+  return state, video, depth, first, jax.random.key(1)
 
 
 def main():
@@ -55,19 +60,19 @@ def main():
   config.pretrain.train.clip_length = args.frames
   pretrain.validate_config(config)
   comp = pretrain.compiled(config)
-  state, video, depth, key = synthetic_inputs(comp, (args.batch, args.frames, 64, 64, 3))
+  state, video, depth, first, key = synthetic_inputs(comp, (args.batch, args.frames, 64, 64, 3))
 
   start = time.perf_counter()
-  compiled = comp.train_step.lower(state, video, depth, key).compile()
+  compiled = comp.train_step.lower(state, video, depth, first, key).compile()
   compile_s = time.perf_counter() - start
-  step_flops = flops.step_flops(comp.train_step, state, video, depth, key)
+  step_flops = flops.step_flops(comp.train_step, state, video, depth, first, key)
 
-  state, metrics = compiled(state, video, depth, key)
+  state, metrics = compiled(state, video, depth, first, key)
   jax.block_until_ready(metrics)
   times = []
   for _ in range(args.steps):
     start = time.perf_counter()
-    state, metrics = compiled(state, video, depth, key)
+    state, metrics = compiled(state, video, depth, first, key)
     jax.block_until_ready(metrics)
     times.append(time.perf_counter() - start)
   step_s = float(np.median(times))

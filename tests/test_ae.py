@@ -103,7 +103,7 @@ def test_the_model_overfits_one_clip_in_rgb_and_depth():
   key = jax.random.key(1)
   history = []
   for _ in range(30):
-    state, metrics = comp.train_step(state, video, depth, key)
+    state, metrics = comp.train_step(state, video, depth, None, key)
     history.append({k: float(v) for k, v in metrics.items()})
   first, last = history[0], history[-1]
   assert last["recon_mse"] < 0.3 * first["recon_mse"], (first, last)

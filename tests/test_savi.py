@@ -405,8 +405,8 @@ def test_a_non_finite_loss_stops_naming_step_and_seeds(trained, tmp_path, monkey
   comp, config = trained["comp"], trained["config"]
   real = comp.train_step
 
-  def poisoned(state, video, depth, key):
-    new_state, metrics = real(state, video, depth, key)
+  def poisoned(state, video, depth, first, key):
+    new_state, metrics = real(state, video, depth, first, key)
     if int(state["step"]) == 15:
       metrics = dict(metrics, loss=jnp.float32(np.nan))
     return new_state, metrics
@@ -460,14 +460,14 @@ def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   depth = (400 + 600 * (synthetic_episode(3)["segmentation"] == 1)).astype(np.uint16)[None]  # table 1 m, rest 0.4 m
   key = jax.random.key(2)
   state = comp.init_state(jax.random.key(1), video.shape)
-  new_state, metrics = comp.train_step(state, video, depth, key)
+  new_state, metrics = comp.train_step(state, video, depth, None, key)
   out = comp.model.apply({"params": state["params"]}, video.astype(np.float32) / 255.0,
                          rngs={"slots": jax.random.fold_in(key, 0)})
   want = float(np.mean((np.asarray(out["depth"]) - depth / 1000.0) ** 2))
   np.testing.assert_allclose(float(metrics["depth_mse"]), want, rtol=1e-4)
   np.testing.assert_allclose(float(metrics["loss"]), float(metrics["recon_mse"]) + 0.5 * want, rtol=1e-5)
   for _ in range(25):
-    new_state, last = comp.train_step(new_state, video, depth, key)
+    new_state, last = comp.train_step(new_state, video, depth, None, key)
   assert float(last["depth_mse"]) < 0.3 * want
 
 
@@ -563,7 +563,7 @@ def test_a_pooled_model_is_evaluated_at_the_segmentation_resolution(tmp_path):
   frames = np.repeat(np.repeat(video[:, ::2, ::2], 2, axis=1), 2, axis=2)   # constant 2x2 blocks
   pooled = frames[:, ::2, ::2].astype(np.float32) / 255.0
 
-  def oracle(_, clip):
+  def oracle(_, clip, first_segmentation):
     return {"masks": masks[None], "recon": pooled[None], "rgb": np.repeat(pooled[None, :, None], 3, axis=2)}
 
   result = slot_eval.evaluate(oracle, None, [{"image": frames, "segmentation": seg}], frames=6, pool=2)
@@ -633,7 +633,7 @@ def test_per_frame_fg_ari_forgives_slots_that_swap_objects_between_frames():
   episode = synthetic_episode(3, length=4)
   seg = episode["segmentation"]
 
-  def oracle(params, video):  # stands in for the model: masks are one-hot segments, objects 3 and 4 swap at t = 2
+  def oracle(params, video, first_segmentation):  # stands in for the model: masks are one-hot segments, objects 3 and 4 swap at t = 2
     slot_of = np.select([seg == 3, seg == 4], [1, 2], 0)
     slot_of[2:] = np.select([seg[2:] == 3, seg[2:] == 4], [2, 1], 0)
     masks = np.moveaxis(np.eye(3, dtype=np.float32)[slot_of], -1, 1)[None]
@@ -825,3 +825,80 @@ def test_selection_takes_the_last_evaluation_ties_to_the_lower_seed_and_nan_last
   assert lower["selected_seed"] == 2                       # lower is better: 2 and 4 tie at 0.4, NaN still last
   with pytest.raises(UserError, match="seed 4 has no validation FG-ARI at its last step 30"):
     pretrain.select_seed(config, root, {**steps, 4: 30}, fg_ari, "SAVi")
+
+
+# ------------------------------------------------------------------------------------------------- conditional SAVi
+def test_first_frame_cues_are_each_ids_box_and_nothing_for_an_absent_id():
+  """Row k of the cues is id k's box in pixel centres of [-1, 1] (top, left, bottom, right) after a 1; an id absent
+  from the frame, or beyond the slots, gives no cue."""
+  seg = np.zeros((1, 16, 16), np.uint8)
+  seg[0, 2:7, 4:9] = 3                                    # rows 2..6, columns 4..8
+  seg[0, 15, 15] = 7                                      # an id with no slot (K = 5)
+  cues = np.asarray(savi.first_frame_cues(seg, 5))
+  centre = lambda i: (2 * i + 1) / 16 - 1
+  np.testing.assert_allclose(cues[0, 3], [1, centre(2), centre(4), centre(6), centre(8)])
+  np.testing.assert_allclose(cues[0, 0], [1, centre(0), centre(0), centre(15), centre(15)])    # the backdrop
+  assert not cues[0, [1, 2, 4]].any()
+  assert savi.CUE_FIELDS == ("present", "top", "left", "bottom", "right")
+
+
+@pytest.fixture(scope="module")
+def conditional(tmp_path_factory):
+  """A tiny conditional SAVi (savi.init_mean "cues", a slot for each of the ids 0..4), trained a few steps on
+  clips with their segmentation, validated once."""
+  config = tiny_config()
+  config.savi.num_slots, config.savi.init_mean = 5, "cues"
+  config.env.min_distractors = config.env.max_distractors = 0    # ids 0..4: backdrop, table, robot, two squares
+  p = config.pretrain
+  p.train.steps, p.train.checkpoint_every, p.eval.every, p.eval.episodes = 4, 4, 4, 1
+  workdir = str(tmp_path_factory.mktemp("conditional_savi"))
+  rundir.save_config(config, workdir)
+  episodes = [synthetic_episode(3), synthetic_episode(4)]
+
+  def batches_from(start):
+    for i in itertools.count(start):
+      e = episodes[i % 2]
+      yield {"video": e["image"][None], "segmentation": e["segmentation"][None], "episode_seed": np.array([i])}
+
+  result = pretrain.train_and_select(config, workdir, lambda c: (batches_from, episodes[:1]), slot_eval.validation)
+  return {"config": config, "workdir": workdir, "result": result, "episodes": episodes}
+
+
+def test_a_conditional_savi_starts_each_episode_from_its_first_frames_cues(conditional):
+  """The frozen conditional SAVi reads the segmentation: its tokens are the model's slots from the first frame's
+  cues (as validation decomposes), they change with the first frame's boxes and not with a later frame's
+  segmentation, and each episode of a batch starts from its own cues."""
+  model, params, step = savi_encoder.load(conditional["workdir"])
+  assert savi.conditional(model) and step == 4
+  figures = os.path.join(rundir.pretrain_dir(conditional["workdir"], "savi"), rundir.FIGURES_DIR)
+  assert os.listdir(figures)                                # validated, from the validation episode's first cues
+  enc = savi_encoder.load_encoder(conditional["workdir"])
+  assert enc.inputs == ("image", "segmentation")
+  episode = conditional["episodes"][1]
+  obs = {"image": episode["image"], "segmentation": episode["segmentation"]}
+  tokens = np.asarray(enc.encode_episode(obs))
+  out = savi.decompose(model, params, episode["image"][None], episode["segmentation"][None, 0])
+  np.testing.assert_allclose(tokens, np.asarray(out["slots"][0]), atol=1e-5)
+  later = dict(obs, segmentation=np.concatenate([obs["segmentation"][:1], np.zeros_like(obs["segmentation"][1:])]))
+  np.testing.assert_allclose(np.asarray(enc.encode_episode(later)), tokens, atol=1e-6)
+  moved = dict(obs, segmentation=np.roll(obs["segmentation"], 4, axis=2))
+  assert np.abs(np.asarray(enc.encode_episode(moved)) - tokens).max() > 1e-3
+  batch = jax.tree.map(lambda *x: np.stack(x), conditional["episodes"][0], episode)
+  both = np.asarray(enc.encode_batch({"image": batch["image"], "segmentation": batch["segmentation"]}))
+  np.testing.assert_allclose(both[1], tokens, atol=1e-5)
+  with pytest.raises(UserError, match="first segmentation"):
+    videos.SaviSlotVideo(conditional["workdir"])(episode["image"])
+
+
+def test_the_cond_column_is_savi_with_cues_and_needs_a_slot_per_object():
+  """savi+cond sets savi.init_mean='cues' and reads back as that column; another encoder cannot take it; a
+  conditional SAVi with fewer slots than the ids its scenes show is refused in one line."""
+  from roboshape.encoders import columns  # pylint: disable=import-outside-toplevel
+  config = common.get_config("pick", "savi+cond", "small")
+  assert config.savi.init_mean == "cues" and columns.of_config(config) == "savi+cond"
+  assert not columns.policy_only("savi+cond")
+  with pytest.raises(UserError, match="applies to savi only"):
+    columns.parse("ae+cond")
+  config.savi.num_slots = 8
+  with pytest.raises(UserError, match=r"savi.num_slots=8 .* use at least 9 slots"):
+    config_check.check(config)

@@ -27,13 +27,19 @@ SEPARATOR = "+"
 
 @dataclasses.dataclass(frozen=True)
 class Option:
-  """An option beyond the paper: `fields` ((dotted config field, value) pairs) it sets, and what it is."""
+  """An option beyond the paper: `fields` ((dotted config field, value) pairs) it sets, what it is, and the encoders
+  it applies to (`encoders`; () for every one)."""
   name: str
   fields: Tuple[Tuple[str, Any], ...]
   description: str
+  encoders: Tuple[str, ...] = ()
 
 
 OPTIONS = {o.name: o for o in (
+    Option("cond", (("savi.init_mean", "cues"),),
+           "conditional SAVi: its first slots are encoded from each object's box in the first frame's segmentation "
+           "(privileged: the simulator's view of where every object is at the first frame; roboshape/models/savi.py)",
+           encoders=("savi",)),
     Option("proprio", (("policy.proprio", True),),
            "the robot's own pose as one more token per frame (roboshape/encoders/proprio.py)"),
     Option("rel", (("policy.hand_relative", True),),
@@ -54,6 +60,10 @@ def parse(column: str) -> Tuple[str, Dict[str, Any]]:
   unknown = [o for o in options if o not in OPTIONS]
   if unknown:
     raise UserError(f"unknown option {unknown[0]!r} in column {column!r}; options: {_choices()}.")
+  foreign = [o for o in options if o in OPTIONS and OPTIONS[o].encoders and encoder not in OPTIONS[o].encoders]
+  if foreign:
+    raise UserError(f"option {foreign[0]!r} in column {column!r} applies to "
+                    f"{', '.join(OPTIONS[foreign[0]].encoders)} only.")
   order = [o for o in OPTIONS if o in options]
   if options != order:
     raise UserError(f"column {column!r} names its options out of order or twice; write it "
@@ -76,7 +86,8 @@ def apply(config, column: str) -> None:
 def of_config(config) -> str:
   """The column `config` (a ConfigDict, or a config.json's dict) is: its encoder, then each option whose fields
   all hold the values the option sets."""
-  on = [o.name for o in OPTIONS.values() if all(fields_lib.get(config, f, None) == v for f, v in o.fields)]
+  on = [o.name for o in OPTIONS.values() if (not o.encoders or config["encoder"] in o.encoders)
+        and all(fields_lib.get(config, f, None) == v for f, v in o.fields)]
   return SEPARATOR.join([config["encoder"]] + on)
 
 

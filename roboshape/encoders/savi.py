@@ -62,6 +62,26 @@ def check(config) -> None:
   if c.slot_size % c.predictor.num_heads:
     raise UserError(f"savi.predictor.num_heads={c.predictor.num_heads} does not divide savi.slot_size="
                     f"{c.slot_size}: use a divisor of the slot size.")
+  shown = len(cue_ids(config))
+  if c.init_mean == "cues" and c.num_slots < shown:
+    raise UserError(f"savi.num_slots={c.num_slots} with savi.init_mean='cues': a conditional SAVi gives each object "
+                    f"a scene can show its own slot, {shown} with env.max_distractors={config.env.max_distractors}: "
+                    f"use at least {shown} slots.")
+
+
+def cue_ids(config) -> tuple:
+  """The segmentation ids a scene of `config` can show with the robot as one object (backdrop, table, robot, cube,
+  goal, its distractors): a conditional SAVi's slot k starts on id k (roboshape/models/savi.py first_frame_cues)."""
+  from roboshape.envs import ids  # pylint: disable=import-outside-toplevel
+  return tuple(range(ids.FIRST_DISTRACTOR + int(config.env.max_distractors)))
+
+
+def slot_view(segmentation):
+  """A segmentation (numpy or JAX, [..., H, W]) as a conditional SAVi's slots see it: the hand is part of the arm
+  (one robot), as the decomposition scores count it (roboshape/envs/ids.py robot_as_one)."""
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  from roboshape.envs import ids  # pylint: disable=import-outside-toplevel
+  return jnp.where(jnp.asarray(segmentation) == ids.HAND, ids.ROBOT, segmentation)
 
 
 def abstract_params(model, resolution: int):
@@ -170,7 +190,10 @@ def load_encoder(workdir: str, config=None, located: bool = False):
   slots drawn with a fixed key (savi.initial_slots), so encoding is deterministic and the same for every episode.
   `located`: it also reads the camera's depth and appends each slot's location to its token ([B, K, D + 3]:
   models/savi.py located_step), and says where each slot's object is (FrozenEncoder.points, for
-  policy.hand_relative).
+  policy.hand_relative). A conditional SAVi (savi.init_mean "cues") also reads the segmentation: its state is the
+  predicted slots and whether the episode has begun, and an episode's first slots come from the cues of its first
+  frame's segmentation, the simulator's privileged view of where each object is at the start (later frames' are
+  not read).
   """
   # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp
@@ -179,20 +202,41 @@ def load_encoder(workdir: str, config=None, located: bool = False):
   workdir, config = pretrained_source(config or rundir.load_config(workdir), workdir)
   model = savi.model_from_config(config)
   params, step, directory = restore(config, workdir, model, rundir.pretrain_dir(workdir, "savi"), "SAVi")
-  init = savi.initial_slots(model, params, 1)[0]
   identity = f"savi:{os.path.abspath(directory)}@{step}"
-  common = dict(name="savi", params=params, num_tokens=model.num_slots,
-                init_state=lambda batch_size: jnp.broadcast_to(init, (batch_size, *init.shape)))
+  inputs = ("image",) + (("depth",) if located else ())
+  if savi.conditional(model):
+    shape = (model.num_slots, model.slot_size)
+    init_state = lambda batch_size: (jnp.zeros((batch_size, *shape)), jnp.zeros((batch_size,), bool))
+    inputs = ("image", "segmentation") + inputs[1:]
+  else:
+    init = savi.initial_slots(model, params, 1)[0]
+    init_state = lambda batch_size: jnp.broadcast_to(init, (batch_size, *init.shape))
+  common = dict(name="savi", params=params, num_tokens=model.num_slots, init_state=init_state, inputs=inputs)
+  step = functools.partial(_step, model, located)
   if not located:
-    return FrozenEncoder(step=functools.partial(savi.frozen_step, model), token_dim=model.slot_size,
-                         identity=identity, **common)
-  return FrozenEncoder(step=functools.partial(_located_step, model), token_dim=model.slot_size + 3,
-                       identity=f"{identity}:located", inputs=("image", "depth"), points=slot_points, **common)
+    return FrozenEncoder(step=step, token_dim=model.slot_size, identity=identity, **common)
+  return FrozenEncoder(step=step, token_dim=model.slot_size + 3, identity=f"{identity}:located",
+                       points=slot_points, **common)
 
 
-def _located_step(model, params, state, obs):
-  from roboshape.models import savi  # pylint: disable=import-outside-toplevel
-  return savi.located_step(model, params, state, obs["image"], obs["depth"])
+def _step(model, located: bool, params, state, obs):
+  """The frozen step of `load_encoder`: the frame's slots (located: with where each attends), the next state."""
+  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp
+  from roboshape.models import savi
+  image = obs if not isinstance(obs, dict) else obs["image"]
+  if savi.conditional(model):
+    slots, begun = state
+    cues = savi.first_frame_cues(slot_view(obs["segmentation"]), model.num_slots)
+    first = savi.initial_slots(model, params, image.shape[0], cues)
+    state = jnp.where(begun[:, None, None], slots, first)
+  if located:
+    tokens, predicted = savi.located_step(model, params, state, image, obs["depth"])
+  else:
+    tokens, predicted = savi.frozen_step(model, params, state, image)
+  if savi.conditional(model):
+    predicted = (predicted, jnp.ones_like(begun))
+  return tokens, predicted
 
 
 def slot_points(tokens):

@@ -21,8 +21,9 @@ from roboshape.train import pretrain
 
 # The task objects whose masks a slot should find on its own, by name: their segmentation ids.
 OBJECTS = {"cube": ids.CUBE, "goal": ids.GOAL, "hand": ids.HAND}
-# (params, video uint8 [B, T, H, W, 3]) -> dict(masks [B, T, K, h, w], recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3])
-Decompose = Callable[[object, np.ndarray], Dict[str, np.ndarray]]
+# (params, video uint8 [B, T, H, W, 3], the first frame's ids [B, H, W] with the robot as one, read by a conditional
+# SAVi) -> dict(masks [B, T, K, h, w], recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3])
+Decompose = Callable[[object, np.ndarray, np.ndarray], Dict[str, np.ndarray]]
 
 
 def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarray]], frames: int,
@@ -47,7 +48,7 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
   best = {name: [] for name in OBJECTS}
   for i, episode in enumerate(episodes):
     video = episode["image"][:frames]
-    out = jax.device_get(decompose(params, video[None]))
+    out = jax.device_get(decompose(params, video[None], ids.robot_as_one(episode["segmentation"][:1])))
     seg = ids.robot_as_one(episode["segmentation"][:frames])   # the robot is one object
     masks = decomposition.upsample_masks(out["masks"][0], pool)         # at the segmentation's resolution
     for name, object_id in OBJECTS.items():                             # the hand apart from the arm

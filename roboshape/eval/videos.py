@@ -7,6 +7,8 @@ from typing import List, Sequence
 
 import numpy as np
 
+from roboshape.errors import UserError
+
 
 def upscale(frames: np.ndarray, factor: int) -> np.ndarray:
   """Nearest-neighbour upscaling of [T, H, W, C] frames (any dtype) by an integer factor (64 px frames are tiny)."""
@@ -112,6 +114,9 @@ class SaviSlotVideo:
       model, params, _ = savi_encoder.load(self.workdir)
       self._loaded = (model, params)
     model, params = self._loaded
+    if savi.conditional(model):
+      raise UserError("a conditional SAVi starts from the rollout's first segmentation, which the recorder does not "
+                      "keep: its slot videos are not made")
     frames = np.asarray(frames, np.uint8)
     t = frames.shape[0]
     padded = np.concatenate([frames, np.repeat(frames[-1:], (-t) % self.pad_multiple, axis=0)])

@@ -31,7 +31,10 @@ import jax.numpy as jnp
 from roboshape.errors import UserError
 from roboshape.models import layers
 
-INIT_MEANS = ("shared", "queries")               # SlotInitializer(mean=...)
+INIT_MEANS = ("shared", "queries", "cues")       # SlotInitializer(mean=...)
+# A conditional SAVi's cue of one object in the first frame (first_frame_cues): whether it is there, and its box's
+# top, left, bottom and right pixel centres in [-1, 1] (row 0 at the top), as SAVi conditions on boxes.
+CUE_FIELDS = ("present", "top", "left", "bottom", "right")
 SLOT_GRADIENTS = ("full", "last")                # SlotAttention(gradient=...)
 DECODER_RGBS = ("spatial", "slot")               # SpatialBroadcastDecoder(rgb=...)
 DECODER_POSITIONS = ("coords", "learned")        # SpatialBroadcastDecoder(position=...)
@@ -63,22 +66,28 @@ class CNNEncoder(nn.Module):
 
 
 class SlotInitializer(nn.Module):
-  """K first-frame slots: drawn from a learned diagonal Gaussian, or K learned vectors.
+  """K first-frame slots: drawn from a learned diagonal Gaussian, K learned vectors, or encoded from cues.
 
   mean="shared": one mean [D] and log-scale [D] for all slots, so only the noise tells the slots apart (the Slot
   Attention paper's initialisation). mean="queries": K learned vectors and no noise at all (learned queries): every
   episode starts from the same slots, so a slot can come to stand for a part of the scene that is always there (the
-  robot, the table).
+  robot, the table). mean="cues": conditional SAVi, slot k encoded by an MLP from the cue of object k in the first
+  frame (first_frame_cues: its box, or "absent"), so each slot starts on its object and the noise is not used.
   """
   num_slots: int
   slot_size: int
   mean: str
 
   @nn.compact
-  def __call__(self, noise: jnp.ndarray) -> jnp.ndarray:
-    """noise [..., K, D] standard normal -> slots [..., K, D] = mean + exp(log_scale) * noise (= mean, "queries")."""
+  def __call__(self, noise: jnp.ndarray, cues: Optional[jnp.ndarray] = None) -> jnp.ndarray:
+    """noise [..., K, D] standard normal (and for "cues" the cues [..., K, len(CUE_FIELDS)]) -> slots [..., K, D] =
+    mean + exp(log_scale) * noise (= mean, "queries"; = MLP(cues), "cues")."""
     if self.mean not in INIT_MEANS:
       raise ValueError(f"unknown slot initialisation mean {self.mean!r}; use one of {INIT_MEANS}.")
+    if self.mean == "cues":
+      if cues is None:
+        raise ValueError("a conditional SAVi (savi.init_mean='cues') starts from the first frame's cues: pass them.")
+      return layers.MLP(2 * self.slot_size, self.slot_size, name="cues")(cues)
     shape = (self.slot_size,) if self.mean == "shared" else (self.num_slots, self.slot_size)
     mean = self.param("mean", nn.initializers.normal(1.0), shape)
     if self.mean == "queries":
@@ -308,9 +317,10 @@ class SAVi(nn.Module):
   def output_resolution(self) -> int:
     return self.decoder_grid_size * math.prod(self.decoder_strides)
 
-  def initial_slots(self, noise: jnp.ndarray) -> jnp.ndarray:
-    """noise [..., K, D] standard normal -> the first frame's slots [..., K, D] from the learned Gaussian."""
-    return self.initializer(noise)
+  def initial_slots(self, noise: jnp.ndarray, cues: Optional[jnp.ndarray] = None) -> jnp.ndarray:
+    """noise [..., K, D] standard normal (cues [..., K, C] for a conditional SAVi) -> the first frame's slots
+    [..., K, D] from the learned initializer."""
+    return self.initializer(noise, cues)
 
   def decode(self, slots: jnp.ndarray) -> Dict[str, jnp.ndarray]:
     """slots [B, K, D] -> dict(recon [B, H, W, 3], rgb [B, K, H, W, 3], masks [B, K, H, W])."""
@@ -326,8 +336,9 @@ class SAVi(nn.Module):
     return self.processor(state, self.encode_frame(frame))
 
   def __call__(self, video: jnp.ndarray, init_slots: Optional[jnp.ndarray] = None,
-               decode: bool = True) -> Dict[str, jnp.ndarray]:
-    """video [B, T, H, W, 3] in [0, 1] (and optionally the first frame's slots [B, K, D]) -> dict:
+               decode: bool = True, cues: Optional[jnp.ndarray] = None) -> Dict[str, jnp.ndarray]:
+    """video [B, T, H, W, 3] in [0, 1] (and optionally the first frame's slots [B, K, D], or for a conditional SAVi
+    the first frame's cues [B, K, C] they are encoded from; initialisation may omit the cues) -> dict:
 
     slots [B, T, K, D] (corrected), predicted [B, T, K, D] (each frame's prediction for the next one), and when
     `decode`: recon [B, T, h, w, 3], rgb [B, T, K, h, w, 3], masks [B, T, K, h, w] with h = H / input_pool
@@ -336,7 +347,9 @@ class SAVi(nn.Module):
     batch = video.shape[0]
     if init_slots is None:
       noise = jax.random.normal(self.make_rng("slots"), (batch, self.num_slots, self.slot_size))
-      init_slots = self.initial_slots(noise)
+      if cues is None and self.init_mean == "cues" and self.is_initializing():
+        cues = jnp.zeros((batch, self.num_slots, len(CUE_FIELDS)), jnp.float32)     # shapes alone
+      init_slots = self.initial_slots(noise, cues)
     video = pool_frames(video, self.input_pool)
     features = _unfold_time(self.encoder(_fold_time(video)), batch)      # [B, T, N, F]
 
@@ -448,18 +461,53 @@ def to_float(video: jax.Array) -> jax.Array:
   return video.astype(jnp.float32) / 255.0
 
 
-def initial_slots(model: SAVi, params, batch_size: int) -> jax.Array:
+def conditional(model) -> bool:
+  """Whether `model` is a conditional SAVi: its first slots come from the first frame's cues (init_mean "cues")."""
+  return isinstance(model, SAVi) and model.init_mean == "cues"
+
+
+def first_frame_cues(segmentation: jax.Array, num_slots: int) -> jax.Array:
+  """A frame's object ids int [B, H, W] -> the cues of a conditional SAVi's first slots, float32 [B, K, C]: row k
+  the cue of id k (CUE_FIELDS: 1 and its box's top, left, bottom, right pixel centres in [-1, 1]; all zero where
+  id k is not in the frame). Ids >= K have no slot and no cue. The caller maps ids as the slots should see them
+  (e.g. the hand onto the arm: the robot as one object)."""
+  h, w = segmentation.shape[-2:]
+  masks = jax.nn.one_hot(jnp.asarray(segmentation), num_slots, dtype=jnp.float32)   # [B, H, W, K]; ids >= K: none
+  rows, cols = masks.max(axis=2), masks.max(axis=1)                                    # [B, H, K], [B, W, K]
+  present = rows.max(axis=1)                                                           # [B, K]
+
+  def extent(marginal, n):
+    centres = ((2.0 * jnp.arange(n, dtype=jnp.float32) + 1.0) / n - 1.0)[None, :, None]
+    return (jnp.min(jnp.where(marginal > 0, centres, 1.0), axis=1),
+            jnp.max(jnp.where(marginal > 0, centres, -1.0), axis=1))
+
+  (top, bottom), (left, right) = extent(rows, h), extent(cols, w)
+  cues = jnp.stack([present, top, left, bottom, right], axis=-1)
+  return jnp.where(present[..., None] > 0, cues, 0.0)
+
+
+def initial_slots(model: SAVi, params, batch_size: int, cues: Optional[jax.Array] = None) -> jax.Array:
   """The frozen encoder's first-frame slots [B, K, D]: the learned initializer on noise drawn with the fixed key
-  INIT_SLOTS_SEED, so encoding is deterministic and the same for every episode of a batch."""
+  INIT_SLOTS_SEED, so encoding is deterministic and the same for every episode of a batch; a conditional SAVi's
+  from each episode's `cues` [B, K, C] (first_frame_cues)."""
+  if conditional(model):
+    if cues is None:
+      raise ValueError("a conditional SAVi's first slots come from the first frame's cues: pass them.")
+    return model.apply({"params": params}, None, cues, method=SAVi.initial_slots)
   noise = jax.random.normal(jax.random.key(INIT_SLOTS_SEED), (model.num_slots, model.slot_size))
   slots = model.apply({"params": params}, noise, method=SAVi.initial_slots)
   return jnp.broadcast_to(slots, (batch_size, *slots.shape))
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def decompose(model: SAVi, params, video: jax.Array) -> Dict[str, jax.Array]:
-  """video uint8 [B, T, H, W, 3] -> the model's outputs (slots, recon, rgb, masks, ...) from `initial_slots`."""
-  return model.apply({"params": params}, to_float(video), init_slots=initial_slots(model, params, video.shape[0]))
+def decompose(model: SAVi, params, video: jax.Array, first_segmentation: Optional[jax.Array] = None
+              ) -> Dict[str, jax.Array]:
+  """video uint8 [B, T, H, W, 3] -> the model's outputs (slots, recon, rgb, masks, ...) from `initial_slots`; a
+  conditional SAVi's from the cues of `first_segmentation` [B, H, W] (its first frame's ids, as the slots see
+  them)."""
+  cues = None if first_segmentation is None else first_frame_cues(first_segmentation, model.num_slots)
+  return model.apply({"params": params}, to_float(video),
+                     init_slots=initial_slots(model, params, video.shape[0], cues))
 
 
 def frozen_step(model: SAVi, params, state: jax.Array, frames: jax.Array) -> Tuple[jax.Array, jax.Array]:

@@ -176,6 +176,10 @@ def write_report(runs: List[Tuple[str, str, str]], loaded: Dict[Tuple[str, str],
       md.append(f"Cells of runs with several training seeds ({', '.join(by_training)}): mean ± std over the "
                 "training seeds of each policy's success rate on all its evaluation rollouts.")
     md.append("")
+  used = [o for o in columns.OPTIONS.values() if any(o.name in e.split(columns.SEPARATOR)[1:] for e in encoders)]
+  if used:
+    md += ["Options beyond the paper in these columns (roboshape/encoders/columns.py):", ""]
+    md += [f"- `{columns.SEPARATOR}{o.name}`: {o.description}" for o in used] + [""]
   answer = claims.answer(loaded, tasks, encoders, levels)
   if answer.cells:
     md += [claims.METHOD, "", "## Verdict", "", claims.verdict(answer, tasks, encoders)]

@@ -48,6 +48,7 @@ import numpy as np
 import optax
 
 from roboshape import encoders
+from roboshape.envs import ids
 from roboshape import fileio
 from roboshape import progress
 from roboshape import rundir
@@ -144,8 +145,9 @@ class Compiled:
     self.schedule = make_schedule(tc)
     self.dp = sharding.DataParallel(tc.batch_size)
     self.depth_weight = savi.depth_weight(config)
+    self.conditional = savi.conditional(model)     # its first slots come from the first frame's cues
     self.train_step = jax.jit(self._train_step,
-                              in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch,
+                              in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch, self.dp.batch,
                                             self.dp.replicated),
                               out_shardings=(self.dp.replicated, self.dp.replicated))
 
@@ -156,13 +158,16 @@ class Compiled:
     params = self.model.init({"params": params_key, "slots": slots_key}, dummy)["params"]
     return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
 
-  def _train_step(self, state, video, depth, key):
-    """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, key) -> (state, metrics)."""
+  def _train_step(self, state, video, depth, first_segmentation, key):
+    """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, the clips' first segmentation
+    [B, H, W] as the slots see it (a conditional SAVi's cues) or None, key) -> (state, metrics)."""
     step_key = jax.random.fold_in(key, state["step"])
+    cues = {} if first_segmentation is None else {
+        "cues": savi.first_frame_cues(first_segmentation, self.model.num_slots)}
 
     def loss_fn(params):
       frames = savi.to_float(video)
-      out = self.model.apply({"params": params}, frames, rngs={"slots": step_key})
+      out = self.model.apply({"params": params}, frames, rngs={"slots": step_key}, **cues)
       return self.loss(self.model, out, frames, depth, self.depth_weight)
 
     (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
@@ -287,7 +292,8 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
                           "--config.env.depth=True (into another --config.data.dir), or set the weight to 0.")
         video = comp.dp.put_batch(batch["video"])
         depth = comp.dp.put_batch(batch["depth"]) if comp.depth_weight > 0 else None
-        new_state, metrics = comp.train_step(state, video, depth, step_key)
+        first = comp.dp.put_batch(ids.robot_as_one(batch["segmentation"][:, 0])) if comp.conditional else None
+        new_state, metrics = comp.train_step(state, video, depth, first, step_key)
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         state, done = new_state, step + 1
         divergence.check({"loss": metrics["loss"], "gradient norm": metrics["grad_norm"]}, done, ckpt,
