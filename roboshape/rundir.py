@@ -80,7 +80,7 @@ REMOVED = {
 # ran with (the behaviour the code had then, which today's default for the field need not be). `load_config` reads
 # every config.json through this table, so code reads today's fields of any run's config without defaults of its
 # own, and a fingerprint record lacking one compares as that value (roboshape/train/fingerprint.py). A field added
-# to configs/common.py gets its entry here; tests/test_rundir.py reads the published configs back through it.
+# to configs/common.py gets its entry here; tests/test_launch.py reads the published configs back through it.
 ADDED = {
     "env.depth": False,
     "pretrain.train.depth_weight": 0.0,

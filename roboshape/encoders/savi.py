@@ -76,14 +76,6 @@ def cue_ids(config) -> tuple:
   return tuple(range(ids.FIRST_DISTRACTOR + int(config.env.max_distractors)))
 
 
-def slot_view(segmentation):
-  """A segmentation (numpy or JAX, [..., H, W]) as a conditional SAVi's slots see it: the hand is part of the arm
-  (one robot), as the decomposition scores count it (roboshape/envs/ids.py robot_as_one)."""
-  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  from roboshape.envs import ids  # pylint: disable=import-outside-toplevel
-  return jnp.where(jnp.asarray(segmentation) == ids.HAND, ids.ROBOT, segmentation)
-
-
 def abstract_params(model, resolution: int):
   """The shapes and dtypes of a frame-reconstruction model's params (SAVi's, the AE's), on the default device, as
   a checkpoint restores them; nothing is computed."""
@@ -223,11 +215,12 @@ def _step(model, located: bool, params, state, obs):
   """The frozen step of `load_encoder`: the frame's slots (located: with where each attends), the next state."""
   # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp
+  from roboshape.envs import ids
   from roboshape.models import savi
   image = obs if not isinstance(obs, dict) else obs["image"]
   if savi.conditional(model):
     slots, begun = state
-    cues = savi.first_frame_cues(slot_view(obs["segmentation"]), model.num_slots)
+    cues = savi.first_frame_cues(ids.robot_as_one(obs["segmentation"]), model.num_slots)
     first = savi.initial_slots(model, params, image.shape[0], cues)
     state = jnp.where(begun[:, None, None], slots, first)
   if located:

@@ -29,7 +29,9 @@ def colorize(segmentation: np.ndarray) -> np.ndarray:
   return COLOURS[np.asarray(segmentation).astype(np.int64) % len(COLOURS)]
 
 
-def robot_as_one(segmentation: np.ndarray) -> np.ndarray:
-  """The segmentation with the hand's pixels given the arm's id (the robot as one object), same dtype."""
-  segmentation = np.asarray(segmentation)
-  return np.where(segmentation == HAND, np.asarray(ROBOT, segmentation.dtype), segmentation)
+def robot_as_one(segmentation):
+  """The segmentation with the hand's pixels given the arm's id (the robot as one object), same dtype and array
+  kind: a numpy array for numpy input, a JAX array (traced ones too, as in a jitted encoder step) for JAX input."""
+  if not hasattr(segmentation, "dtype"):
+    segmentation = np.asarray(segmentation)
+  return (segmentation + (segmentation == HAND) * (ROBOT - HAND)).astype(segmentation.dtype)

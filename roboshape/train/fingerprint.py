@@ -29,7 +29,8 @@ roboshape/eval/closed_loop.py, policy_fingerprint).
 Not differences (`NOT_READ`): how long (the steps: more steps resume), how often (logging, checkpoints,
 validation), where (data.dir, pretrain.from_workdir), with which workers, which training seeds run (each seed's run
 is trained alike), and what only validation or control reads. A field a record lacks (one added to the configs
-since) compares as the value the stage ran with before it existed (rundir.ADDED). A workdir written before stages recorded fingerprints is read with its config.json as the
+since) compares as the value the stage ran with before it existed (rundir.ADDED). A workdir written before stages
+recorded fingerprints is read with its config.json as the
 record of every stage that holds output, said once, when that record is written beside the output.
 """
 import dataclasses
