@@ -1,12 +1,13 @@
 """SAVi train-step throughput, and how much of the machine's dense-matmul speed the step reaches.
 
   JAX_PLATFORMS=cpu .venv/bin/python benchmarks/savi_speed.py [--variant=paper|small|tiny] [--steps=3] \
-      [--set savi.pool=2 --set "savi.decoder.strides=(2, 2)" ...]
+      [--set savi.pool=2 --set "savi.decoder.strides=(2, 2)" ...] [--compare]
 
 Times the jitted pretrain step (forward, backward, Adam) at batch 8 x 6 frames of 64x64 with the variant's SAVi
 (paper = SAVi-S), prints its parameter count (and :paper's), frames/s, the step's FLOPs from XLA's cost analysis
-of the compiled step, and the ratio of the step's FLOP/s to the FLOP/s of a large float32 matmul measured in the
-same run.
+of the compiled step (a scan over frames is counted once, not once a frame), and the ratio of the step's FLOP/s to
+the FLOP/s of a large float32 matmul measured in the same run. --compare also times the plain variant, its steps
+taking turns with the --set ones, and prints the ratio of the two steps' times.
 """
 import argparse
 import os
@@ -42,6 +43,33 @@ def synthetic_inputs(comp, shape):
   return state, video, depth, first, jax.random.key(1)
 
 
+class Timed:
+  """One config's compiled pretrain step on synthetic clips: `step()` runs it once and returns its seconds."""
+
+  def __init__(self, config, shape):
+    pretrain.validate_config(config)
+    comp = pretrain.compiled(config)
+    self.state, *self.inputs = synthetic_inputs(comp, shape)
+    start = time.perf_counter()
+    self.compiled = comp.train_step.lower(self.state, *self.inputs).compile()
+    self.compile_s = time.perf_counter() - start
+    self.flops = flops.step_flops(comp.train_step, self.state, *self.inputs)
+    self.times = []
+    self.step()                                                     # warm-up, not kept
+    self.times = []
+
+  def step(self) -> float:
+    start = time.perf_counter()
+    self.state, metrics = self.compiled(self.state, *self.inputs)
+    jax.block_until_ready(metrics)
+    self.times.append(time.perf_counter() - start)
+    return self.times[-1]
+
+  @property
+  def median(self) -> float:
+    return float(np.median(self.times))
+
+
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--variant", default="paper", choices=common.VARIANTS)
@@ -50,32 +78,27 @@ def main():
   parser.add_argument("--frames", type=int, default=6)
   parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                       help="override a config field (a Python literal), e.g. --set savi.pool=2")
+  parser.add_argument("--compare", action="store_true",
+                      help="also time the plain variant, taking turns, and print the ratio of the step times")
   args = parser.parse_args()
 
-  config = common.get_config("pick", "savi", args.variant)
-  for item in args.set:
-    common.override(config, item)
-  config.env.resolution = 64
-  config.pretrain.train.batch_size = args.batch
-  config.pretrain.train.clip_length = args.frames
-  pretrain.validate_config(config)
-  comp = pretrain.compiled(config)
-  state, video, depth, first, key = synthetic_inputs(comp, (args.batch, args.frames, 64, 64, 3))
+  def config_of(sets):
+    config = common.get_config("pick", "savi", args.variant)
+    for item in sets:
+      common.override(config, item)
+    config.env.resolution = 64
+    config.pretrain.train.batch_size = args.batch
+    config.pretrain.train.clip_length = args.frames
+    return config
 
-  start = time.perf_counter()
-  compiled = comp.train_step.lower(state, video, depth, first, key).compile()
-  compile_s = time.perf_counter() - start
-  step_flops = flops.step_flops(comp.train_step, state, video, depth, first, key)
-
-  state, metrics = compiled(state, video, depth, first, key)
-  jax.block_until_ready(metrics)
-  times = []
+  shape = (args.batch, args.frames, 64, 64, 3)
+  config = config_of(args.set)
+  runs = {"with --set" if args.set else args.variant: Timed(config, shape)}
+  if args.compare:
+    runs[f"plain {args.variant}"] = Timed(config_of([]), shape)
   for _ in range(args.steps):
-    start = time.perf_counter()
-    state, metrics = compiled(state, video, depth, first, key)
-    jax.block_until_ready(metrics)
-    times.append(time.perf_counter() - start)
-  step_s = float(np.median(times))
+    for run in runs.values():
+      run.step()
   matmul = flops.matmul_flops_per_s()
 
   frames = args.batch * args.frames
@@ -83,13 +106,18 @@ def main():
   paper_params = savi.parameter_count(common.get_config("pick", "savi", "paper").savi, 64)
   print(f"device: {jax.devices()[0].device_kind} x{jax.device_count()}, variant {args.variant}, "
         f"batch {args.batch} x {args.frames} frames, 64x64, K={config.savi.num_slots}, D={config.savi.slot_size}")
-  print(f"parameters: {params:,} ({args.variant}{' with --set' if args.set else ''}); :paper (SAVi-S) "
-        f"{paper_params:,}")
-  print(f"compile: {compile_s:.1f} s; step times (s): {', '.join(f'{t:.3f}' for t in times)}")
-  print(f"train step: {step_s:.3f} s median -> {frames / step_s:.1f} frames/s")
-  print(f"step FLOPs (XLA cost analysis): {step_flops / 1e9:.1f} GFLOP -> {step_flops / step_s / 1e9:.1f} GFLOP/s")
+  print(f"parameters: {params:,} ({args.variant}{' with --set ' + ' '.join(args.set) if args.set else ''}); "
+        f":paper (SAVi-S) {paper_params:,}")
+  for name, run in runs.items():
+    print(f"[{name}] compile: {run.compile_s:.1f} s; step times (s): {', '.join(f'{t:.3f}' for t in run.times)}")
+    print(f"[{name}] train step: {run.median:.3f} s median -> {frames / run.median:.1f} frames/s")
+    print(f"[{name}] step FLOPs (XLA cost analysis): {run.flops / 1e9:.1f} GFLOP -> "
+          f"{run.flops / run.median / 1e9:.1f} GFLOP/s; / matmul FLOP/s: {run.flops / run.median / matmul:.3f}")
   print(f"dense matmul 2048^3 float32: {matmul / 1e9:.1f} GFLOP/s")
-  print(f"ratio step FLOP/s / matmul FLOP/s: {step_flops / step_s / matmul:.3f}")
+  if args.compare:
+    (_, candidate), (_, plain) = runs.items()
+    print(f"ratio step with --set / plain {args.variant} step: {candidate.median / plain.median:.2f} "
+          f"(medians of {args.steps} turns each)")
 
 
 if __name__ == "__main__":

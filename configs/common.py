@@ -176,6 +176,9 @@ def savi_config(variant: str) -> ml_collections.ConfigDict:
       num_slots=_pick(variant, paper=11, small=9, tiny=11),
       slot_size=_pick(variant, paper=128, small=128, tiny=32),
       pool=_pick(variant, **_FRAME_POOL),
+      # > 0: slot attention on the frame's full pixel grid, each pixel the CNN's cell plus a convolution of this
+      # many channels of the unpooled frame (roboshape/models/savi.py:FullGrid); 0: on the CNN's grid
+      full_grid=0,
       # first frame's slots: "shared" (one learned mean + noise) or "queries" (K learned vectors, no noise)
       init_mean=_pick(variant, paper="shared", small="queries", tiny="shared"),
       num_iterations=_pick(variant, paper=1, small=3, tiny=2),  # slot-attention iterations per frame (SAVi-S: 1)

@@ -87,6 +87,7 @@ ADDED = {
     "pretrain.train_seeds": (),
     "pretrain.from_workdir": "",
     "savi.pool": 1,
+    "savi.full_grid": 0,
     "savi.init_mean": "shared",
     "savi.slot_gradient": "full",
     "savi.predictor.identity_init": False,

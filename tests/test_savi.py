@@ -10,6 +10,7 @@ import shutil
 import jax
 import jax.numpy as jnp
 import numpy as np
+import flax.linen as nn
 import pytest
 
 from configs import common
@@ -155,6 +156,60 @@ def test_slot_attention_is_equivariant_to_permuting_the_initial_slots():
   out_perm = apply(params, slots[:, perm], inputs)
   np.testing.assert_allclose(out_perm, out[:, perm], atol=1e-5)
   assert not np.allclose(out, slots, atol=1e-3)  # the slots did move
+
+
+def _slot_attention_reference(params, slots, inputs, iterations, epsilon=1e-8):
+  """Slot attention as the Slot Attention paper writes it, every input projected to a key and a value, built from
+  the module's own params and Flax's LayerNorm, GRU and the MLP."""
+  p = params["params"]
+  norm = lambda name, x: nn.LayerNorm().apply({"params": p[name]}, x)
+  inputs = norm("norm_inputs", inputs)
+  keys, values = inputs @ p["key"]["kernel"], inputs @ p["value"]["kernel"]           # [B, N, D]
+  size = slots.shape[-1]
+  for _ in range(iterations):
+    queries = norm("norm_slots", slots) @ p["query"]["kernel"] / np.sqrt(size)
+    attention = jax.nn.softmax(jnp.einsum("bkd,bnd->bkn", queries, keys), axis=1)
+    weights = attention / (attention.sum(-1, keepdims=True) + epsilon)
+    slots, _ = nn.GRUCell(size).apply({"params": p["gru"]}, slots, weights @ values)
+    slots = layers.MLP(32, size, layernorm=True, residual=True).apply({"params": p["mlp"]}, slots)
+  return slots
+
+
+def test_slot_attention_applies_its_key_and_value_maps_on_the_slots_side_with_the_same_result():
+  keys = jax.random.split(jax.random.key(7), 3)
+  slots = jax.random.normal(keys[0], (2, 4, 16))
+  inputs = jax.random.normal(keys[1], (2, 30, 8))
+  module = savi.SlotAttention(num_iterations=3, mlp_size=32)
+  params = module.init(keys[2], slots, inputs)
+  # the params of a Dense-layer slot attention: kernels [F, D] named key and value
+  assert params["params"]["key"]["kernel"].shape == params["params"]["value"]["kernel"].shape == (8, 16)
+  assert set(params["params"]["key"]) == {"kernel"}
+  np.testing.assert_allclose(module.apply(params, slots, inputs),
+                             _slot_attention_reference(params, slots, inputs, 3), atol=2e-5)
+
+
+def test_a_full_grid_gives_slot_attention_a_pixel_each_and_keeps_the_decoder():
+  config = tiny_config()
+  config.savi.pool, config.savi.full_grid = 2, 4
+  video = jnp.asarray(np.random.default_rng(0).random((1, 2, 16, 16, 3)), jnp.float32)
+  model = savi.model_from_config(config)
+  variables = model.init({"params": jax.random.key(0), "slots": jax.random.key(1)}, video)
+  out, inter = model.apply(variables, video, rngs={"slots": jax.random.key(2)}, mutable=["intermediates"])
+  attention = inter["intermediates"]["processor"]["corrector"]["attention"][-1]
+  assert attention.shape[-1] == 16 * 16                      # one input per pixel of the 16x16 frame
+  assert out["masks"].shape[-2:] == (8, 8)                   # the decoder still draws the pooled frame
+  # pixels of one CNN cell differ only through the full-resolution path: no path, equal inputs
+  frame = video[:, 0]
+  features = model.apply(variables, frame, method=savi.SAVi.encode_frame)
+  no_path = jax.tree.map(jnp.zeros_like, variables["params"]["fine"])
+  flat = model.apply({"params": {**variables["params"], "fine": no_path}}, frame, method=savi.SAVi.encode_frame)
+  cells = np.asarray(flat).reshape(1, 8, 2, 8, 2, -1)    # the CNN's 8x8 grid (pool 2, strides 1): 2x2-pixel cells
+  assert np.allclose(cells, cells[:, :, :1, :, :1])
+  assert not np.allclose(features, flat)
+  assert savi.parameter_count(config.savi, 16) > savi.parameter_count(tiny_config().savi, 16)
+  config.savi.encoder.strides = (3, 1, 1, 1, 1)
+  with pytest.raises(UserError, match="savi.full_grid=4: the CNN's"):
+    savi.check_config(config.savi, 16)
 
 
 def test_slot_initializer_shared_mean():

@@ -44,6 +44,7 @@ RANGES = (
     ranges.Int("savi.slot_size", 1, "the width of a slot, a multiple of savi.predictor.num_heads"),
     ranges.Int("savi.num_iterations", 1, "slot-attention iterations per frame"),
     ranges.Int("savi.slot_mlp_size", 0, "the slot MLP's width; 0: no MLP"),
+    ranges.Int("savi.full_grid", 0, "channels of the full-resolution path; 0: slot attention on the CNN's grid"),
     ranges.Int("savi.predictor.num_heads", 1, "the predictor's attention heads"),
     ranges.Int("savi.predictor.mlp_size", 1, "the predictor MLP's width"),
     ranges.Flag("savi.predictor.identity_init", "the predictor starts as LayerNorm"),

@@ -96,6 +96,42 @@ class SlotInitializer(nn.Module):
     return mean + jnp.exp(log_scale) * noise
 
 
+class FullGrid(nn.Module):
+  """Slot attention's inputs on the frame's own pixel grid rather than the CNN's coarser one: every pixel gets the
+  features of the encoder cell it lies in (nearest upsampling) plus a linear map of one convolution of the full-
+  resolution frame around it, with a position embedding (so the pixels of one cell differ by colour and place).
+  The CNN still sees the pooled frames and carries the context; this path adds what the pooling and strides lose,
+  at the cost of one convolution of `channels` per pixel (and slot attention over H x W inputs, cheap on the slots'
+  side: SlotAttention).
+
+  frame [B, H, W, 3] in [0, 1], features [B, g * g, F] on the encoder's g x g grid (g divides H) -> [B, H * W, F].
+  """
+  channels: int
+  kernel_size: int
+
+  @nn.compact
+  def __call__(self, frame: jnp.ndarray, features: jnp.ndarray) -> jnp.ndarray:
+    batch, height, width, _ = frame.shape
+    grid, size = math.isqrt(features.shape[1]), features.shape[-1]
+    cells = features.reshape(batch, grid, 1, grid, 1, size)
+    coarse = jnp.broadcast_to(cells, (batch, grid, height // grid, grid, width // grid, size))
+    x = nn.Conv(self.channels, (self.kernel_size, self.kernel_size), padding="SAME", name="conv")(frame)
+    x = layers.PositionEmbedding(name="position")(nn.relu(x))
+    fine = nn.Dense(size, name="project")(x.reshape(batch, height * width, self.channels))
+    return coarse.reshape(batch, height * width, size) + fine
+
+
+class _Kernel(nn.Module):
+  """A bias-free Dense layer's kernel [in_size, out_size] on its own (param "kernel", Dense's default init), for
+  applying the map where it is cheapest (SlotAttention)."""
+  in_size: int
+  out_size: int
+
+  @nn.compact
+  def __call__(self) -> jnp.ndarray:
+    return self.param("kernel", nn.initializers.lecun_normal(), (self.in_size, self.out_size))
+
+
 class SlotAttention(nn.Module):
   """Iterative slot attention: attention normalised over the slots (they compete for each input), a weighted mean
   of the values per slot, a GRU update and a residual MLP (none with mlp_size=0, as SAVi-S's corrector).
@@ -104,6 +140,12 @@ class SlotAttention(nn.Module):
   gradient (the iterations approximate a fixed point): all but the last iteration run under stop_gradient, and the
   initial slots get the last iteration's gradient straight through (slots' = sg(slots) + init - sg(init)), so the
   learned initial slots (and SAVi's predictor) still train; the backward pass is one iteration long.
+
+  The keys and values are linear maps of the inputs (kernels "key" and "value", [F, D]), applied on the slots' side:
+  a slot's logits are its query mapped back through the key kernel against the inputs, q . (x W_k) = (q W_k^T) . x,
+  and its update the value kernel applied to its weighted mean of the inputs, w . (x W_v) = (w . x) W_v. The same
+  numbers as projecting every input, but an iteration costs K x N x F instead of N x F x D for the projections,
+  which is what makes slot attention on a full-resolution grid (thousands of inputs) cheap.
   slots [B, K, D], inputs [B, N, F] -> slots [B, K, D]; equivariant to permutations of the K slots.
   """
   num_iterations: int
@@ -116,9 +158,9 @@ class SlotAttention(nn.Module):
     if self.gradient not in SLOT_GRADIENTS:
       raise ValueError(f"unknown slot-attention gradient {self.gradient!r}; use one of {SLOT_GRADIENTS}.")
     slot_size, init = slots.shape[-1], slots
-    inputs = nn.LayerNorm(name="norm_inputs")(inputs)
-    keys = nn.Dense(slot_size, use_bias=False, name="key")(inputs)        # [B, N, D]
-    values = nn.Dense(slot_size, use_bias=False, name="value")(inputs)    # [B, N, D]
+    inputs = nn.LayerNorm(name="norm_inputs")(inputs)                     # [B, N, F]
+    key_kernel = _Kernel(inputs.shape[-1], slot_size, name="key")()        # [F, D]
+    value_kernel = _Kernel(inputs.shape[-1], slot_size, name="value")()    # [F, D]
     query_dense = nn.Dense(slot_size, use_bias=False, name="query")
     norm_slots = nn.LayerNorm(name="norm_slots")
     gru = nn.GRUCell(slot_size, name="gru")
@@ -128,11 +170,11 @@ class SlotAttention(nn.Module):
       if self.gradient == "last" and i == iterations - 1 and i > 0:
         slots = jax.lax.stop_gradient(slots) + init - jax.lax.stop_gradient(init)
       queries = query_dense(norm_slots(slots)) / math.sqrt(slot_size)     # [B, K, D]
-      logits = jnp.einsum("bkd,bnd->bkn", queries, keys)                  # [B, K, N]
+      logits = jnp.einsum("bkf,bnf->bkn", queries @ key_kernel.T, inputs)  # [B, K, N] = queries . keys
       attention = jax.nn.softmax(logits, axis=1)                          # over the slots
       self.sow("intermediates", "attention", attention)                   # kept only when asked for (mutable)
       weights = attention / (attention.sum(axis=-1, keepdims=True) + self.epsilon)
-      updates = jnp.einsum("bkn,bnd->bkd", weights, values)               # weighted mean, [B, K, D]
+      updates = jnp.einsum("bkn,bnf->bkf", weights, inputs) @ value_kernel  # weighted mean of the values, [B, K, D]
       slots, _ = gru(slots, updates)
       if mlp is not None:
         slots = mlp(slots)
@@ -302,10 +344,13 @@ class SAVi(nn.Module):
   decoder_position: str
   decoder_depth: bool
   input_pool: int
+  full_grid: int
 
   def setup(self):
     self.encoder = CNNEncoder(self.encoder_features, self.encoder_kernel_size, self.encoder_strides,
                               self.encoder_mlp_size, self.feature_size)
+    if self.full_grid:
+      self.fine = FullGrid(self.full_grid, self.encoder_kernel_size)
     self.initializer = SlotInitializer(self.num_slots, self.slot_size, self.init_mean)
     self.processor = Processor(self.num_iterations, self.slot_mlp_size, self.predictor_heads,
                                self.predictor_mlp_size, self.predictor_identity_init, self.slot_gradient)
@@ -327,8 +372,10 @@ class SAVi(nn.Module):
     return self.decoder(slots)
 
   def encode_frame(self, frame: jnp.ndarray) -> jnp.ndarray:
-    """frame [B, H, W, 3] in [0, 1] -> the encoder's features [B, N, F]."""
-    return self.encoder(pool_frames(frame, self.input_pool))
+    """frame [B, H, W, 3] in [0, 1] -> slot attention's inputs [B, N, F]: the encoder's features of the pooled frame,
+    on the frame's full H x W grid with full_grid > 0 (FullGrid)."""
+    features = self.encoder(pool_frames(frame, self.input_pool))
+    return self.fine(frame, features) if self.full_grid else features
 
   def step(self, frame: jnp.ndarray, state: jnp.ndarray) -> Tuple[jnp.ndarray, jnp.ndarray]:
     """One frame: (frame [B, H, W, 3] in [0, 1], predicted slots [B, K, D]) -> (slots [B, K, D], next state); on a
@@ -350,8 +397,7 @@ class SAVi(nn.Module):
       if cues is None and self.init_mean == "cues" and self.is_initializing():
         cues = jnp.zeros((batch, self.num_slots, len(CUE_FIELDS)), jnp.float32)     # shapes alone
       init_slots = self.initial_slots(noise, cues)
-    video = pool_frames(video, self.input_pool)
-    features = _unfold_time(self.encoder(_fold_time(video)), batch)      # [B, T, N, F]
+    features = _unfold_time(self.encode_frame(_fold_time(video)), batch)  # [B, T, N, F]
 
     def body(processor, carry, frame_features):
       corrected, predicted = processor(carry, frame_features)
@@ -415,6 +461,11 @@ def check_config(savi_config, resolution: int) -> None:
     if value not in choices:
       raise UserError(f"savi.{field}={value!r}: use one of {', '.join(choices)} (see configs/common.py).")
   check_frames(c, "savi", resolution)
+  grid = resolution // input_pool(c) // math.prod(c.encoder.strides)
+  if c.full_grid and grid * input_pool(c) * math.prod(c.encoder.strides) != resolution:
+    raise UserError(f"savi.full_grid={c.full_grid}: the CNN's {grid}x{grid} grid does not tile the "
+                    f"{resolution}x{resolution} frame (savi.pool x prod(savi.encoder.strides) must divide "
+                    f"env.resolution); set savi.full_grid=0 or change savi.pool or savi.encoder.strides.")
 
 
 def parameter_count(savi_config, resolution: int) -> int:
@@ -443,7 +494,7 @@ def build_model(savi_config, resolution: int, depth: bool = False) -> SAVi:
       decoder_kernel_size=int(c.decoder.kernel_size), decoder_strides=tuple(c.decoder.strides),
       decoder_upsampling=str(c.decoder.upsampling), decoder_rgb=str(c.decoder.rgb),
       decoder_position=str(c.decoder.position), decoder_depth=bool(depth),
-      input_pool=input_pool(c))
+      input_pool=input_pool(c), full_grid=int(c.full_grid))
 
 
 def model_from_config(config) -> SAVi:
