@@ -4,8 +4,8 @@
             ranges.Number("pretrain.train.learning_rate", 0.0, "the peak learning rate", low_ok=False))
   ranges.check(config, RANGES)    # roboshape.errors.UserError "<field>=<value>: use ... (<what it is>)." for the first
 
-An encoder's own sections are declared with its registration (roboshape/encoders, Kind.check), the sections every
-run reads in roboshape/config_check.py. Importing this module imports nothing but the errors.
+An encoder's own sections are declared with its registration (roboshape/encoders, Kind.check), a stage's sections
+in the module that reads them (e.g. roboshape/train/pretrain.py RANGES), the rest in roboshape/config_check.py. Importing this module imports nothing but the errors.
 """
 import dataclasses
 import math

@@ -63,6 +63,39 @@ def _pretrain_loop(config, workdir: str, make_validation) -> None:
   pretrain.run(config, workdir, make_validation)
 
 
+def _check_policy(config) -> None:
+  from roboshape.models import policy  # pylint: disable=import-outside-toplevel
+  policy.check_config(config)
+
+
+def _check_policy_training(config) -> None:
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  bc.check_config(config)
+
+
+def _check_evaluation(config) -> None:
+  from roboshape.eval import closed_loop  # pylint: disable=import-outside-toplevel
+  closed_loop.check_config(config)
+
+
+def _check_pretraining(config) -> None:
+  from roboshape.train import pretrain  # pylint: disable=import-outside-toplevel
+  pretrain.check_config(config)
+
+
+# The sections the stages' modules own, each checked by its owner's check_config with the rest of the config before
+# any stage runs (roboshape/config_check.py); "pretrain" for the encoders that list it in Kind.sections.
+SECTION_CHECKS = config_check.SectionChecks(
+    every_run=(_check_policy, _check_policy_training, _check_evaluation),
+    shared={"pretrain": _check_pretraining})
+
+
+def check(config) -> None:
+  """Raises UserError, one line naming the field and what to do, for the first problem of `config` (a run's or a
+  grid's): roboshape.config_check.check with the stages' SECTION_CHECKS."""
+  config_check.check(config, SECTION_CHECKS)
+
+
 def _slots_validation(*args):
   from roboshape.eval import slots  # pylint: disable=import-outside-toplevel
   return slots.validation(*args)
@@ -198,7 +231,7 @@ def run_grid(config, workdir: str, redo: Sequence[str] = ()) -> None:
   (<workdir>/stages.json, entry rundir.GRID_CLOCK) adds up the wall time of its attempts: how long the whole grid
   took, across restarts, which no run's own log can tell (`roboshape.status` prints it).
   """
-  config_check.check(config)
+  check(config)
   check_redo(config, redo)
   runs = list(grid_configs(config, workdir))
   check_workdir(config, workdir)
@@ -340,7 +373,7 @@ def stage_runner(name: str, config):
 def run(config, workdir: str, redo: Sequence[str] = ()) -> None:
   """Runs config.stages in order, each as `stage_runner(name, config)(workdir)` (a grid config: `run_grid`).
 
-  Before any stage runs and before config.json is written, the whole config is checked (roboshape.config_check)
+  Before any stage runs and before config.json is written, the whole config is checked (`check`)
   and so is the workdir (`check_workdir`): bad input is a UserError and leaves the workdir as it was, and so does a
   config that differs from what a stage's output in the workdir was made with, unless `redo` (launch.py's --redo)
   names that stage, whose output is then set aside (roboshape/train/fingerprint.py). The run holds the workdir
@@ -351,7 +384,7 @@ def run(config, workdir: str, redo: Sequence[str] = ()) -> None:
   if "grid" in config:
     run_grid(config, workdir, redo)
     return
-  config_check.check(config)
+  check(config)
   check_redo(config, redo)
   plan = check_workdir(config, workdir, redo)
   with rundir.hold_workdir(workdir):

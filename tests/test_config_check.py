@@ -14,7 +14,6 @@ import sys
 import pytest
 
 from configs import common
-from roboshape import config_check
 from roboshape import rundir
 from roboshape import stages
 from roboshape.errors import UserError
@@ -188,7 +187,7 @@ def _shipped_configs():
 def test_every_shipped_config_passes_the_check():
   names = []
   for name, config in _shipped_configs():
-    config_check.check(config)
+    stages.check(config)
     names.append(name)
   assert "reproduce:paper" in names and "pick_savi:small" in names and "push_ae:tiny" in names
 
@@ -197,10 +196,10 @@ def test_a_section_of_another_encoder_is_not_checked():
   config = common.get_config("pick", "r3m", "tiny")
   config.env.resolution = 32          # SAVi's decoder would not fit; R3M never builds it
   config.savi.num_slots = 0
-  config_check.check(config)
+  stages.check(config)
   config.baselines.r3m.input_size = 16
   with pytest.raises(UserError, match=r"baselines\.r3m\.input_size=16"):
-    config_check.check(config)
+    stages.check(config)
 
 
 def test_an_unwritable_workdir_is_refused_before_config_json(tmp_path, monkeypatch):

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from configs import common
-from roboshape import config_check
 from roboshape import encoders
+from roboshape import stages
 from roboshape.encoders import columns
 from roboshape.errors import UserError
 from roboshape.encoders import state as state_encoder
@@ -76,7 +76,7 @@ def test_the_state_token_is_the_vector_in_decimetres_then_relative_positions():
 def _state_tokens_before_and_after(config):
   """The state tokens [2, 3, TOKEN_DIM] of random states, from the state encoder of the default state section and
   from that of `config` (checked), whose identity differs and whose width does not."""
-  config_check.check(config)
+  stages.check(config)
   full = encoders.get("state").build(common.get_config(config.task, "state", "tiny"), "")
   changed = encoders.get("state").build(config, "")
   assert changed.identity != full.identity and changed.token_dim == full.token_dim
@@ -99,7 +99,7 @@ def test_withholding_a_state_field_zeroes_its_entries_and_the_relative_ones_made
   for bad in (("cube_yaw",), ("gripper", "gripper")):
     config.state.withhold = bad
     with pytest.raises(UserError, match=r"^state.withhold=.*: use a tuple of distinct state fields among tcp_pos, "):
-      config_check.check(config)
+      stages.check(config)
 
 
 def test_a_dataset_without_state_is_a_one_line_error_for_the_state_encoder(tmp_path):
@@ -192,28 +192,27 @@ def _toy_config(toy, data_dir=""):
 def test_a_new_encoders_module_is_all_the_config_check_and_stage_wiring_need(toy):
   # pylint: disable=import-outside-toplevel
   from configs import reproduce
-  from roboshape import config_check
   from roboshape import stages
   config = _toy_config(toy)
   assert config.encoder == "toy" and "pretrain" not in config.stages           # no pretrain stage of its own
-  config_check.check(config)
+  stages.check(config)
   config.toy.scale = 0.0                                                         # its own range, from its module
   with pytest.raises(UserError, match=r"^toy\.scale=0\.0: use a number > 0 \(the factor"):
-    config_check.check(config)
+    stages.check(config)
   config.toy.scale = 1.0
   config.stages = ("cache", "pretrain")
   with pytest.raises(UserError, match="the toy encoder has no pretrain stage; drop it from --config.stages"):
-    config_check.check(config)
+    stages.check(config)
   config.stages = ("cache", "train_policy", "evaluate")
   assert all(callable(stages.stage_runner(name, config)) for name in config.stages)
   other = common.get_config("push", "r3m", "tiny")                               # the toy's section is its own:
   other.toy = toy.section()                                                      # another encoder's run never
   other.toy.scale = -1.0                                                         # checks it
-  config_check.check(other)
+  stages.check(other)
   grid = reproduce.get_config("tiny")
   grid.grid.encoders = ("toy", "savi")
   grid.toy = toy.section()
-  config_check.check(grid)
+  stages.check(grid)
   runs = [(encoder, tuple(sub.stages)) for _, encoder, sub, _ in stages.grid_configs(grid, "/w")]
   assert runs == [("savi", tuple(common.STAGES[:-1])), ("toy", tuple(s for s in common.STAGES[:-1]
                                                                      if s != "pretrain"))]
@@ -310,7 +309,7 @@ def test_hand_relative_tokens_carry_each_objects_position_from_the_hand_and_need
   from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
   config = common.get_config("pick", "poses", "tiny")
   columns.apply(config, "poses+proprio+rel")
-  config_check.check(config)
+  stages.check(config)
   assert columns.of_config(config) == "poses+proprio+rel"
   plain = encoders.get("poses").build(config, "")
   enc = encoders.build_encoder(config, "")
@@ -328,17 +327,17 @@ def test_hand_relative_tokens_carry_each_objects_position_from_the_hand_and_need
   assert not tokens[4:plain.num_tokens].any()                                     # absent distractors stay all zero
   config.policy.proprio = False
   with pytest.raises(UserError, match=r"^policy.hand_relative=True needs the tool centre point"):
-    config_check.check(config)
+    stages.check(config)
   savi = common.get_config("pick", "savi", "tiny")
   columns.apply(savi, "savi+proprio+rel")
   with pytest.raises(UserError, match="slots are placed in 3-D only with the camera's depth: set env.depth=True"):
-    config_check.check(savi)
+    stages.check(savi)
   savi.env.depth = True
-  config_check.check(savi)
+  stages.check(savi)
   objects = common.get_config("pick", "objects", "tiny")
   columns.apply(objects, "objects+proprio+rel")
   with pytest.raises(UserError, match="only with depth: set env.depth=True"):
-    config_check.check(objects)
+    stages.check(objects)
 
 
 def test_an_object_tokens_point_is_its_centroid_at_its_depth_through_the_camera():

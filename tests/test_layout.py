@@ -185,6 +185,15 @@ def test_reporting_never_imports_evaluation():
       assert not [t for t in targets if t.startswith(("roboshape.eval", "roboshape.train"))], module
 
 
+def test_the_config_check_composes_the_owners_ranges_without_importing_them():
+  """roboshape/config_check.py checks the stages' sections through the checks roboshape/stages.py hands it, so it
+  imports nothing from the models, the training or the evaluation (inside functions neither)."""
+  path = os.path.join(ROOT, "roboshape", "config_check.py")
+  targets, _ = imports(ROOT, "roboshape.config_check", path)
+  assert "roboshape.ranges" in targets
+  assert not [t for t in targets if t.startswith(("roboshape.models", "roboshape.train", "roboshape.eval"))]
+
+
 def test_the_scan_sees_imports_inside_functions(tmp_path):
   pkg = tmp_path / "roboshape" / "train"
   pkg.mkdir(parents=True)

@@ -14,9 +14,9 @@ import flax.linen as nn
 import pytest
 
 from configs import common
-from roboshape import config_check
 from roboshape import encoders
 from roboshape import rundir
+from roboshape import stages
 from roboshape.checkpoint import Checkpointer
 from roboshape.encoders import savi as savi_encoder
 from roboshape.errors import UserError
@@ -577,7 +577,7 @@ def test_bad_resolution_is_a_user_error():
   broken = tiny_config()
   broken.pretrain.train.depth_weight = -0.5          # the pretrain section's ranges: checked before any stage
   with pytest.raises(UserError, match="pretrain.train.depth_weight=-0.5: use a number >= 0"):
-    config_check.check(broken)
+    stages.check(broken)
 
 
 def test_pool_frames_known_values():
@@ -752,7 +752,7 @@ def test_a_run_with_pretrain_from_workdir_serves_that_runs_savi_and_refuses_one_
   config.pretrain.from_workdir = trained["workdir"]
   config.data.dir = os.path.join(trained["workdir"], "data")    # the folder the plain run's data.dir="" names
   config.stages = tuple(s for s in config.stages if s != "pretrain")
-  config_check.check(config)
+  stages.check(config)
   workdir = str(tmp_path / "push_savi+proprio")
   rundir.save_config(config, workdir)
   served = savi_encoder.load_encoder(workdir)
@@ -775,7 +775,7 @@ def test_a_run_with_pretrain_from_workdir_serves_that_runs_savi_and_refuses_one_
   # and a run cannot both serve another run's SAVi and pretrain one
   config.stages = ("pretrain",)
   with pytest.raises(UserError, match="drop 'pretrain' from --config.stages"):
-    config_check.check(config)
+    stages.check(config)
 
 
 def test_each_seed_trains_in_its_own_folder_with_its_own_params(seeded):
@@ -956,4 +956,4 @@ def test_the_cond_column_is_savi_with_cues_and_needs_a_slot_per_object():
     columns.parse("ae+cond")
   config.savi.num_slots = 8
   with pytest.raises(UserError, match=r"savi.num_slots=8 .* use at least 9 slots"):
-    config_check.check(config)
+    stages.check(config)

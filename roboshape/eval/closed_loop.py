@@ -51,6 +51,7 @@ from tqdm import tqdm
 from roboshape import envs
 from roboshape import fileio
 from roboshape import progress
+from roboshape import ranges
 from roboshape import rundir
 from roboshape.encoders import columns
 from roboshape.envs import state as state_lib
@@ -61,9 +62,40 @@ from roboshape.report import results as results_lib
 from roboshape.report import tables
 from roboshape.eval import videos
 from roboshape.sim.spec import CAMERA_KEYS
+from roboshape.sim.spec import MAX_SEED
 
 SEED_STRIDE = 100_000
 FIRST_STEPS = 5     # the actions `first_move` averages over
+
+# The ranges of the eval section (its levels and seeds are checked together by check_config).
+RANGES = (
+    ranges.Int("eval.num_seeds", 1, "evaluation seeds per level"),
+    ranges.Int("eval.rollouts_per_seed", 1, "rollouts per evaluation seed"),
+    ranges.Int("eval.seed_offset", 0, "the first evaluation env seed"),
+    ranges.Int("eval.max_retries", 0, "re-runs of a rollout whose simulator worker died"),
+    ranges.Int("eval.videos_per_level", 0, "rollouts recorded as videos per level"),
+    ranges.Int("eval.video_fps", 1, "frames per second of the videos"),
+)
+
+
+def check_config(config) -> None:
+  """Raises UserError for the first bad field of the evaluation plan: known levels, RANGES, and env seeds that stay
+  within one evaluation seed's stride and the simulator's range (roboshape/config_check.py runs it before any
+  stage)."""
+  levels = ranges.value(config, "eval.levels")
+  if (isinstance(levels, str) or not isinstance(levels, (tuple, list)) or not levels
+      or any(l not in LEVEL_NAMES for l in levels)):
+    raise UserError(f"eval.levels={levels!r}: use a non-empty tuple of the levels "
+                    f"{ranges.choices(LEVEL_NAMES)}, e.g. \"('train', 'L1')\".")
+  ranges.check(config, RANGES)
+  ev = config.eval
+  if ev.rollouts_per_seed > SEED_STRIDE:
+    raise UserError(f"eval.rollouts_per_seed={ev.rollouts_per_seed}: use at most {SEED_STRIDE} "
+                    "(rollouts of one seed must not reach the next seed's env seeds).")
+  last = ev.seed_offset + (ev.num_seeds - 1) * SEED_STRIDE + ev.rollouts_per_seed - 1
+  if last > MAX_SEED:
+    raise UserError(f"eval.seed_offset={ev.seed_offset} with eval.num_seeds={ev.num_seeds} reaches env seed {last}"
+                    f", past the largest, {MAX_SEED}: lower eval.seed_offset or eval.num_seeds.")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -32,6 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from roboshape import ranges
+from roboshape.errors import UserError
 from roboshape.models import encoder as encoder_lib
 from roboshape.models import heads
 
@@ -201,6 +203,38 @@ class Carry(NamedTuple):
 
 
 ACTIONS = ("mean", "sample")      # ControlSpec.action: the mixture mean, or a mode drawn by weight
+
+# The ranges of the policy section's fields that describe the trunk and how it acts (its training's: train/bc.py).
+RANGES = (
+    ranges.Int("policy.history", 1, "frames the policy sees"),
+    ranges.Int("policy.width", 1, "the transformer's width"),
+    ranges.Int("policy.num_layers", 1, "transformer blocks"),
+    ranges.Int("policy.num_heads", 1, "attention heads, a divisor of policy.width"),
+    ranges.Int("policy.mlp_ratio", 1, "the MLP's width over policy.width"),
+    ranges.Int("policy.action_dim", 1, "action dimensions, 7 for the RoboShape envs"),
+    ranges.Int("policy.num_modes", 1, "GMM modes"),
+    ranges.Int("policy.eval.history", 0, "frames seen at control time; 0: policy.history"),
+    ranges.Number("policy.dropout", 0.0, "a dropout probability", high=1.0),
+    ranges.Number("policy.min_scale", 0.0, "the floor on the GMM's scales"),
+    ranges.Number("policy.eval.noise", 0.0, "the sampling noise, a fraction of the mode's scale"),
+    ranges.Flag("policy.proprio", "a proprioception token per frame"),
+    ranges.Flag("policy.hand_relative", "each token's object relative to the hand (needs policy.proprio)"),
+    ranges.Flag("policy.frame_pool", "each frame's tokens pooled into one before the temporal transformer"),
+    ranges.Choice("policy.eval.action", ACTIONS, "the mixture mean, or a sampled mode"),
+)
+
+
+def check_config(config) -> None:
+  """Raises UserError for the first bad field of the policy trunk and its control step: RANGES, heads that divide
+  the width, a control-time history within the training one (roboshape/config_check.py runs it before any stage)."""
+  ranges.check(config, RANGES)
+  policy = config.policy
+  if policy.width % policy.num_heads:
+    raise UserError(f"policy.num_heads={policy.num_heads} does not divide policy.width={policy.width}: use a "
+                    "divisor of the width.")
+  if policy.eval.history > policy.history:
+    raise UserError(f"policy.eval.history={policy.eval.history} exceeds policy.history={policy.history}: use at "
+                    "most the training history (0: the training history).")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from roboshape import fileio
 from roboshape import progress
+from roboshape import ranges
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
@@ -49,6 +50,31 @@ from roboshape.train import sharding
 
 # ----------------------------------------------------------------------------------------------------------------
 # Action normalisation.
+
+
+# The ranges of the policy section's training fields (the trunk's own: roboshape/models/policy.py RANGES).
+RANGES = (
+    ranges.Int("policy.train.steps", 1, "gradient steps; evaluate needs the checkpoint they leave"),
+    ranges.Int("policy.train.batch_size", 1, "windows per gradient step"),
+    ranges.Int("policy.train.warmup_steps", 0, "steps of linear learning-rate warmup"),
+    ranges.Int("policy.train.log_every", 1, "steps between TensorBoard logs"),
+    ranges.Int("policy.train.eval_every", 1, "steps between validations"),
+    ranges.Int("policy.train.checkpoint_every", 1, "steps between checkpoints"),
+    ranges.Int("policy.train.val_batch_size", 1, "windows per validation batch"),
+    ranges.Int("policy.train.max_val_samples", 1, "action targets scored per validation"),
+    ranges.Number("policy.train.learning_rate", 0.0, "the peak learning rate", low_ok=False),
+    ranges.Number("policy.train.weight_decay", 0.0, "AdamW's weight decay"),
+    ranges.Number("policy.train.grad_clip", 0.0, "the global gradient-norm clip", low_ok=False),
+    ranges.Ints("policy.train_seeds", 0, "one policy per training seed; (): one policy trained with config.seed",
+                empty_ok=True, distinct=True),
+)
+
+
+def check_config(config) -> None:
+  """Raises UserError for the first bad field of the policy's training: RANGES, then the feature cache's dtype
+  (roboshape/train/cache.py); roboshape/config_check.py runs it before any stage."""
+  ranges.check(config, RANGES)
+  cache.check_config(config)
 
 
 def norm_stats(actions: np.ndarray) -> Dict[str, list]:

@@ -34,6 +34,17 @@ BATCH_EPISODES = 8       # episodes encoded together (padded to a common length 
 LENGTH_BUCKET = 16       # episode lengths are padded up to a multiple of this, so few shapes compile
 
 
+def check_config(config) -> None:
+  """Raises UserError unless policy.cache_dtype is a float dtype (the cached features' storage)."""
+  dtype = config.policy.cache_dtype
+  try:
+    floating = np.dtype(dtype).kind == "f"
+  except TypeError:
+    floating = False
+  if not floating:
+    raise UserError(f"policy.cache_dtype={dtype!r}: use a float dtype, float32 or float16 (halves the cache).")
+
+
 def dataset_fingerprint(path: str) -> str:
   """A hash of a dataset directory: every file's relative path and size, small files' contents, big files' ends."""
   if not os.path.isdir(path):

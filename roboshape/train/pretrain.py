@@ -51,6 +51,7 @@ from roboshape import encoders
 from roboshape.envs import ids
 from roboshape import fileio
 from roboshape import progress
+from roboshape import ranges
 from roboshape import rundir
 from roboshape.checkpoint import Checkpointer
 from roboshape.errors import UserError
@@ -80,6 +81,43 @@ def validate_config(config) -> None:
 SAVI_CLIP_NORM = 0.05   # SAVi's max_grad_norm (on its loss, summed over a clip's pixel values)
 ADAM_EPS = 1e-8         # Adam's epsilon (optax's and SAVi's) at that clip
 CLIP_NORM_OF = ("mean", "sum")   # pretrain.train.clip_norm_of: the loss whose gradient pretrain.train.clip_norm bounds
+
+# The ranges of the pretrain section, read by every encoder with a pretrain stage (Kind.sections).
+RANGES = (
+    ranges.Int("pretrain.train.steps", 0, "pretraining steps"),
+    ranges.Int("pretrain.train.batch_size", 1, "clips per step"),
+    ranges.Int("pretrain.train.clip_length", 1, "frames per clip"),
+    ranges.Int("pretrain.train.warmup_steps", 0, "steps of linear learning-rate warmup"),
+    ranges.Int("pretrain.train.checkpoint_every", 1, "steps between checkpoints"),
+    ranges.Int("pretrain.train.keep_checkpoints", 1, "checkpoints kept"),
+    ranges.Int("pretrain.train.log_every", 1, "steps between TensorBoard logs"),
+    ranges.Number("pretrain.train.learning_rate", 0.0, "the peak learning rate", low_ok=False),
+    ranges.Number("pretrain.train.clip_norm", 0.0, "the global gradient-norm clip", low_ok=False),
+    ranges.Number("pretrain.train.depth_weight", 0.0, "the weight of the depth MSE; 0: no depth target"),
+    ranges.Choice("pretrain.train.clip_norm_of", CLIP_NORM_OF,
+                  "the loss whose gradient clip_norm bounds: the mean over a clip's values, or their sum (SAVi's)"),
+    ranges.Int("pretrain.eval.every", 1, "steps between validations"),
+    ranges.Int("pretrain.eval.episodes", 0, "validation episodes; 0: no validation"),
+    ranges.Int("pretrain.eval.frames", 1, "frames of each validation episode"),
+    ranges.Ints("pretrain.train_seeds", 0, "one pretraining run per seed, the best by validation kept; (): one run "
+                "with config.seed", empty_ok=True, distinct=True),
+)
+
+
+def check_config(config) -> None:
+  """Raises UserError for the first bad field of the pretrain section: RANGES, seeds that can be ranked, and depth
+  in the data for a depth target (roboshape/config_check.py runs it before any stage, for an encoder with a
+  pretrain stage)."""
+  ranges.check(config, RANGES)
+  p = config.pretrain
+  if len(p.train_seeds) > 1 and p.eval.episodes < 1:
+    raise UserError(f"pretrain.train_seeds={tuple(p.train_seeds)!r} selects a seed by validation, which "
+                    f"pretrain.eval.episodes={p.eval.episodes} turns off: set pretrain.eval.episodes >= 1, or train "
+                    "one seed.")
+  weight = float(p.train.depth_weight)
+  if weight > 0 and not config.env.depth and {"collect", "pretrain"} & set(config.stages):
+    raise UserError(f"pretrain.train.depth_weight={weight} needs depth in the dataset: set "
+                    "--config.env.depth=True, or --config.pretrain.train.depth_weight=0.")
 
 
 def values_per_clip(config, input_pool: int) -> int:
