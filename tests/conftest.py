@@ -4,7 +4,13 @@ import contextlib
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+# XLA's compiled programs kept on disk for the suite (JAX's persistent compilation cache): many tests, and the
+# launch.py processes they start, compile the same tiny programs, which then load instead of compiling again. It
+# lives in pytest's own cache folder, so it is never committed and `rm -rf .pytest_cache` clears it; a
+# JAX_COMPILATION_CACHE_DIR already set wins.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(ROOT, ".pytest_cache", "jax"))
 
 import numpy as np  # pylint: disable=wrong-import-position
 import pytest  # pylint: disable=wrong-import-position
