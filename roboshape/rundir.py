@@ -84,6 +84,7 @@ REMOVED = {
 ADDED = {
     "env.depth": False,
     "pretrain.train.depth_weight": 0.0,
+    "pretrain.train.mask_weight": 0.0,
     "pretrain.train_seeds": (),
     "pretrain.from_workdir": "",
     "savi.pool": 1,

@@ -18,6 +18,7 @@ from roboshape import encoders
 from roboshape import rundir
 from roboshape import stages
 from roboshape.checkpoint import Checkpointer
+from roboshape.envs import ids
 from roboshape.encoders import savi as savi_encoder
 from roboshape.errors import UserError
 from roboshape.eval import decomposition
@@ -460,8 +461,8 @@ def test_a_non_finite_loss_stops_naming_step_and_seeds(trained, tmp_path, monkey
   comp, config = trained["comp"], trained["config"]
   real = comp.train_step
 
-  def poisoned(state, video, depth, first, key):
-    new_state, metrics = real(state, video, depth, first, key)
+  def poisoned(state, *inputs):
+    new_state, metrics = real(state, *inputs)
     if int(state["step"]) == 15:
       metrics = dict(metrics, loss=jnp.float32(np.nan))
     return new_state, metrics
@@ -524,6 +525,41 @@ def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   for _ in range(25):
     new_state, last = comp.train_step(new_state, video, depth, None, key)
   assert float(last["depth_mse"]) < 0.3 * want
+
+
+def test_mask_weights_make_each_segment_weigh_its_share_to_the_power():
+  """A 4x4 frame: table 11 pixels, cube 3, arm 1 and hand 1 (one segment of 2: the robot counts as one)."""
+  seg = np.full((4, 4), ids.TABLE, np.uint8)
+  seg[0, :3] = ids.CUBE
+  seg[3, 2], seg[3, 3] = ids.ROBOT, ids.HAND
+  w = pretrain.mask_weights(seg[None], 1.0)[0]
+  assert w.shape == (4, 4) and abs(float(w.mean()) - 1.0) < 1e-6
+  for segment in (seg == ids.TABLE, seg == ids.CUBE, (seg == ids.ROBOT) | (seg == ids.HAND)):
+    np.testing.assert_allclose(w[segment].sum(), 16 / 3, rtol=1e-6)    # power 1: each segment the same total
+  np.testing.assert_allclose(pretrain.mask_weights(seg[None], 0.0)[0], np.ones((4, 4)))
+  half = pretrain.mask_weights(seg[None], 0.5)[0]
+  np.testing.assert_allclose(half[0, 0] / half[1, 1], np.sqrt(11 / 3), rtol=1e-6)   # a cube pixel over a table one
+
+
+def test_a_mask_weighted_train_step_minimises_the_weighted_mse():
+  """loss = the mean of the pooled pixel weights x squared errors; recon_mse stays the plain MSE."""
+  config = tiny_config()
+  config.pretrain.train.mask_weight = 1.0
+  comp = pretrain.compiled(config)
+  episode = synthetic_episode(3)
+  video = episode["image"][None]
+  weight = pretrain.mask_weights(episode["segmentation"][None], 1.0)
+  key = jax.random.key(2)
+  state = comp.init_state(jax.random.key(1), video.shape)
+  _, metrics = comp.train_step(state, video, None, None, key, weight)
+  out = comp.model.apply({"params": state["params"]}, video.astype(np.float32) / 255.0,
+                         rngs={"slots": jax.random.fold_in(key, 0)})
+  frames = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, comp.model.input_pool))
+  pooled = np.asarray(savi.pool_frames(weight[..., None], comp.model.input_pool))
+  error = (np.asarray(out["recon"]) - frames) ** 2
+  np.testing.assert_allclose(float(metrics["loss"]), float(np.mean(pooled * error)), rtol=1e-4)
+  np.testing.assert_allclose(float(metrics["recon_mse"]), float(np.mean(error)), rtol=1e-4)
+  assert not np.isclose(float(metrics["loss"]), float(metrics["recon_mse"]), rtol=1e-3)
 
 
 def test_a_depth_weight_without_depth_in_the_data_is_a_user_error(tmp_path):

@@ -10,7 +10,9 @@ this module's and the same for every model, so they are pretrained alike:
 
 Settings: config.pretrain, one section for every model (configs/common.py:pretrain_config says why).
 Training: clips of pretrain.train.clip_length frames from the dataset's train split, the reconstruction MSE against
-the frames pooled by the model's input_pool (plus pretrain.train.depth_weight x the depth MSE), Adam with linear
+the frames pooled by the model's input_pool (plus pretrain.train.depth_weight x the depth MSE; with
+pretrain.train.mask_weight = p > 0 each pixel's error weighs (its segment's share of the frame)^-p, `mask_weights`,
+so small objects count for more: it reads the simulator's segmentation in pretraining only), Adam with linear
 warmup, cosine decay and global-norm clipping (`make_optimizer`). The jitted train step shards the batch over the
 devices of a 1-D mesh ("data") and keeps parameters replicated. Writes under <workdir>/<encoder>/: checkpoints/
 (orbax; resumed after a kill at the same step, with the same data order since batch i of the dataset's
@@ -94,6 +96,8 @@ RANGES = (
     ranges.Number("pretrain.train.learning_rate", 0.0, "the peak learning rate", low_ok=False),
     ranges.Number("pretrain.train.clip_norm", 0.0, "the global gradient-norm clip", low_ok=False),
     ranges.Number("pretrain.train.depth_weight", 0.0, "the weight of the depth MSE; 0: no depth target"),
+    ranges.Number("pretrain.train.mask_weight", 0.0, "p: a pixel's error weighs its segment's share of the frame to "
+                  "the power -p; 0: every pixel alike", high=2.0),
     ranges.Choice("pretrain.train.clip_norm_of", CLIP_NORM_OF,
                   "the loss whose gradient clip_norm bounds: the mean over a clip's values, or their sum (SAVi's)"),
     ranges.Int("pretrain.eval.every", 1, "steps between validations"),
@@ -155,15 +159,33 @@ def make_schedule(train_config) -> optax.Schedule:
   return optax.warmup_cosine_decay_schedule(0.0, train_config.learning_rate, warmup, max(steps, warmup + 1), 0.0)
 
 
-def reconstruction_loss(model, out, frames, depth, depth_weight: float):
+def mask_weights(segmentation: np.ndarray, power: float) -> np.ndarray:
+  """float32 [..., H, W] pixel weights of segmentation [..., H, W] (the robot's links as one segment,
+  roboshape/envs/ids.py): a pixel weighs (the share of its frame its segment covers)^-power, scaled so that each
+  frame's weights average 1. power 1 gives every segment of a frame the same total weight, however small."""
+  seg = ids.robot_as_one(np.asarray(segmentation))
+  flat = seg.reshape(-1, seg.shape[-2] * seg.shape[-1]).astype(np.int64)
+  counts = np.stack([np.bincount(f, minlength=256)[f] for f in flat]).astype(np.float64)
+  weight = (counts / flat.shape[1]) ** -float(power)
+  weight /= weight.mean(axis=1, keepdims=True)
+  return weight.reshape(seg.shape).astype(np.float32)
+
+
+def reconstruction_loss(model, out, frames, depth, depth_weight: float, pixel_weight=None):
   """(loss, {term: value}) of a frame model's outputs `out` on float frames [B, L, H, W, 3] in [0, 1]: the RGB
   reconstruction MSE against the frames pooled by model.input_pool, a mean over clips, frames, pixels and channels
   (SAVi's is the sum over a clip's frames, pixels and channels, meaned over clips; train.clip_norm_of says which
   one the clip is stated for), plus `depth_weight` times the depth MSE in metres when that weight is > 0 (the model
-  then predicts depth, SAVi++'s second target; depth uint16 [B, L, H, W] millimetres must be given)."""
+  then predicts depth, SAVi++'s second target; depth uint16 [B, L, H, W] millimetres must be given). With
+  `pixel_weight` [B, L, H, W] (`mask_weights`, mean 1 a frame) each pixel's squared errors are weighted by it, pooled
+  as the frames are; recon_mse stays the plain MSE, so runs with and without weights read alike."""
   target = savi.pool_frames(frames, model.input_pool)
-  terms = {"recon_mse": jnp.mean(jnp.square(out["recon"] - target))}
+  error = jnp.square(out["recon"] - target)
+  terms = {"recon_mse": jnp.mean(error)}
   loss = terms["recon_mse"]
+  if pixel_weight is not None:
+    pooled = savi.pool_frames(pixel_weight[..., None], model.input_pool)
+    loss = terms["weighted_mse"] = jnp.mean(pooled * error)
   if depth_weight > 0:
     metres = savi.pool_frames(depth.astype(jnp.float32)[..., None] / 1000.0, model.input_pool)[..., 0]
     terms["depth_mse"] = jnp.mean(jnp.square(out["depth"] - metres))
@@ -184,9 +206,10 @@ class Compiled:
     self.dp = sharding.DataParallel(tc.batch_size)
     self.depth_weight = savi.depth_weight(config)
     self.conditional = savi.conditional(model)     # its first slots come from the first frame's cues
+    self.mask_weight = float(tc.mask_weight)
     self.train_step = jax.jit(self._train_step,
                               in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch, self.dp.batch,
-                                            self.dp.replicated),
+                                            self.dp.replicated, self.dp.batch),
                               out_shardings=(self.dp.replicated, self.dp.replicated))
 
   def init_state(self, key: jax.Array, video_shape: Sequence[int]) -> Dict[str, Any]:
@@ -196,9 +219,10 @@ class Compiled:
     params = self.model.init({"params": params_key, "slots": slots_key}, dummy)["params"]
     return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
 
-  def _train_step(self, state, video, depth, first_segmentation, key):
+  def _train_step(self, state, video, depth, first_segmentation, key, pixel_weight=None):
     """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, the clips' first segmentation
-    [B, H, W] as the slots see it (a conditional SAVi's cues) or None, key) -> (state, metrics)."""
+    [B, H, W] as the slots see it (a conditional SAVi's cues) or None, key, the pixels' loss weights [B, L, H, W]
+    (`mask_weights`) or None) -> (state, metrics)."""
     step_key = jax.random.fold_in(key, state["step"])
     cues = {} if first_segmentation is None else {
         "cues": savi.first_frame_cues(first_segmentation, self.model.num_slots)}
@@ -206,7 +230,8 @@ class Compiled:
     def loss_fn(params):
       frames = savi.to_float(video)
       out = self.model.apply({"params": params}, frames, rngs={"slots": step_key}, **cues)
-      return self.loss(self.model, out, frames, depth, self.depth_weight)
+      weighted = {} if pixel_weight is None else {"pixel_weight": pixel_weight}
+      return self.loss(self.model, out, frames, depth, self.depth_weight, **weighted)
 
     (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
     updates, opt_state = self.optimizer.update(grads, state["opt_state"], state["params"])
@@ -331,7 +356,9 @@ def fit(config, root: str, comp: Compiled, batches_from: Callable[[int], Iterato
         video = comp.dp.put_batch(batch["video"])
         depth = comp.dp.put_batch(batch["depth"]) if comp.depth_weight > 0 else None
         first = comp.dp.put_batch(ids.robot_as_one(batch["segmentation"][:, 0])) if comp.conditional else None
-        new_state, metrics = comp.train_step(state, video, depth, first, step_key)
+        weight = None if comp.mask_weight <= 0 else comp.dp.put_batch(
+            mask_weights(batch["segmentation"], comp.mask_weight))
+        new_state, metrics = comp.train_step(state, video, depth, first, step_key, weight)
         metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         state, done = new_state, step + 1
         divergence.check({"loss": metrics["loss"], "gradient norm": metrics["grad_norm"]}, done, ckpt,
