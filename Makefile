@@ -10,10 +10,9 @@ setup:
 demo: setup
 	$(PY) launch.py --config=configs/reproduce.py:tiny --workdir=$(DEMO_WORKDIR)
 
-# Every core runs tests (-n auto); a test module stays on one worker (--dist loadscope), so the module-scoped fixtures
-# (a tiny trained SAVi, a simulator pool) are built once, not once a worker; the 25 slowest are listed at the end.
+# Every core runs tests (-n auto, tests handed out one by one as workers free up); the 25 slowest are listed at the end.
 test: setup
-	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --dist loadscope --durations=25 tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --durations=25 tests
 
 clean-demo:
 	rm -rf $(DEMO_WORKDIR)
