@@ -1,7 +1,11 @@
 """Collection speed of the RoboShape dataset against the raw simulator, measured side by side in one run.
 
   .venv/bin/python benchmarks/collect_speed.py [--task pick|push|place|all] [--episodes 8] [--workers 0]
-                                               [--raw-steps 200] [--resolution 64]
+                                               [--raw-steps 200] [--resolution 64] [--cameras]
+
+--cameras measures only the cost of the wrist camera: the collect path with 1 worker (with depth, as `:small`
+collects) with the front camera alone and with the front and the wrist camera, the two runs taking turns
+(front, both, front, both), and prints seconds and bytes per episode and their ratio.
 
 Prints, at --resolution (64) with rendering (RGB + segmentation):
   raw env   : env steps/s of one env in one process, random actions, no expert, no bridge, no writing
@@ -101,6 +105,34 @@ def collect_rate(config, workers: int, workdir: str) -> dict:
           stored_frames, "frames_per_episode": stored_frames / episodes}
 
 
+def compare_cameras(common, args) -> int:
+  """Collection with the front camera alone against the front and the wrist camera, 1 worker, in turns."""
+  print(f"machine: {os.cpu_count()} CPU cores, load average {os.getloadavg()[0]:.1f} at start; resolution "
+        f"{args.resolution}, depth stored, 1 worker, {args.episodes} + 1 episodes a run", flush=True)
+  tasks = ("push", "pick", "place") if args.task == "all" else (args.task,)
+  for task in tasks:
+    runs = {("front",): [], ("front", "wrist"): []}
+    for cameras in list(runs) * 2:
+      config = common.get_config(task, "savi", "tiny")
+      config.env.resolution, config.env.depth, config.env.cameras = args.resolution, True, cameras
+      config.data.train_episodes = args.episodes
+      workdir = tempfile.mkdtemp(prefix="roboshape_bench_")
+      try:
+        r = collect_rate(config, 1, workdir)
+      finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+      runs[cameras].append(r)
+      print(f"[{task}] {' + '.join(cameras):13s}: {r['seconds'] / r['episodes']:.2f} s/episode, "
+            f"{r['frames_per_s']:.1f} frames/s, {r['bytes_per_frame'] * r['frames_per_episode'] / 1e3:.0f} KB/episode",
+            flush=True)
+    per_episode = {c: sum(r["seconds"] for r in rs) / sum(r["episodes"] for r in rs) for c, rs in runs.items()}
+    size = {c: sum(r["bytes_per_frame"] for r in rs) / len(rs) for c, rs in runs.items()}
+    one, two = per_episode[("front",)], per_episode[("front", "wrist")]
+    print(f"[{task}] ratio front + wrist / front per collected episode: {two / one:.2f} ({two:.2f} s against "
+          f"{one:.2f} s; bar <= 2); bytes per frame {size[('front', 'wrist')] / size[('front',)]:.2f}x", flush=True)
+  return 0
+
+
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--task", default="pick", choices=("push", "pick", "place", "all"))
@@ -108,8 +140,11 @@ def main(argv=None) -> int:
   parser.add_argument("--workers", type=int, default=0, help="N for the parallel run (0: one per CPU core)")
   parser.add_argument("--raw-steps", type=int, default=200, help="timed random-action env steps")
   parser.add_argument("--resolution", type=int, default=64)
+  parser.add_argument("--cameras", action="store_true", help="front alone against front + wrist, 1 worker")
   args = parser.parse_args(argv)
   from configs import common  # pylint: disable=import-outside-toplevel
+  if args.cameras:
+    return compare_cameras(common, args)
   workers = args.workers or os.cpu_count() or 1
   tasks = ("push", "pick", "place") if args.task == "all" else (args.task,)
   print(f"machine: {os.cpu_count()} CPU cores, load average {os.getloadavg()[0]:.1f} at start; "

@@ -83,6 +83,7 @@ REMOVED = {
 # to configs/common.py gets its entry here; tests/test_launch.py reads the published configs back through it.
 ADDED = {
     "env.depth": False,
+    "env.cameras": ("front",),
     "pretrain.train.depth_weight": 0.0,
     "pretrain.train.mask_weight": 0.0,
     "pretrain.train_seeds": (),

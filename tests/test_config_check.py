@@ -32,6 +32,7 @@ BAD_CONFIGS = [
     ("control history over the training one", (SAVI, "--config.policy.eval.history=11"), "policy.eval.history"),
     ("min distractors over max", (SAVI, "--config.env.min_distractors=5"), "env.min_distractors"),
     ("too many distractors", (SAVI, "--config.env.max_distractors=9"), "env.max_distractors"),
+    ("a camera the scene has not", (SAVI, "--config.env.cameras=('front', 'top')"), "env.cameras"),
     ("unknown encoder", (SAVI, "--config.encoder=nope"), "encoder"),
     ("unknown stage", (SAVI, "--config.stages=('collect', 'fly')"), "stages"),
     ("pretrain without one", ("--config=configs/pick_r3m.py:tiny", "--config.stages=('collect', 'pretrain')"),

@@ -318,6 +318,36 @@ def test_validate_names_bad_episodes(tmp_path, capsys):
   assert "seed 1 appears twice" in err
 
 
+def test_a_wrist_camera_round_trips_validates_and_browses(tmp_path, synthetic_dataset):
+  """env.cameras=("front", "wrist"): each episode stores the wrist view as observation/wrist_image and
+  wrist_segmentation beside the front one, reads back, validates, and the browser shows both views."""
+  def with_wrist(seed):
+    episode = _synthetic_episode(seed)
+    episode["wrist_image"] = episode["image"][:, ::-1].copy()
+    episode["wrist_segmentation"] = episode["segmentation"][:, ::-1].copy()
+    return episode
+
+  path = rlds.write_dataset(str(tmp_path / "roboshape_push" / "1.0.0"),
+                            {"train": [with_wrist(s) for s in range(2)], "val": [with_wrist(1_000_000)]})
+  assert _state(path)["config"]["cameras"] == ["front", "wrist"]
+  for e in reader.read_episodes(path, "train"):
+    for key in ("image", "segmentation", "wrist_image", "wrist_segmentation"):
+      np.testing.assert_array_equal(e[key], with_wrist(e["seed"])[key])
+  assert validate.main([path]) == 0
+  episode = with_wrist(0)
+  frames = browse.frames_of(episode, scale=1)            # front image, its segmentation, wrist image, its segmentation
+  assert frames.shape[1:] == (16, 4 * 16 + 3, 3)
+  np.testing.assert_array_equal(frames[:, :, 2 * 17:2 * 17 + 16], episode["wrist_image"])
+  with pytest.raises(ValueError, match="cameras"):
+    rlds.write_dataset(str(tmp_path / "mixed"), {"train": [with_wrist(0), _synthetic_episode(1)]})
+  # A dataset written before cameras existed has the front one alone: it matches a config with the front camera.
+  old = {k: v for k, v in _state(synthetic_dataset)["config"].items() if k != "cameras"}
+  front, both = _config("push"), _config("push", env__cameras=("front", "wrist"))
+  assert collect.config_differences(old, dict(old, cameras=collect.config_summary(front)["cameras"])) == []
+  assert collect.config_differences(old, dict(old, cameras=collect.config_summary(both)["cameras"])) == [
+      "cameras: ['front'] in the dataset, ['front', 'wrist'] in the config"]
+
+
 def test_browse_writes_an_animation_and_a_strip(synthetic_dataset, tmp_path):
   import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
   out = str(tmp_path / "ep.gif")
@@ -334,9 +364,9 @@ def test_browse_writes_an_animation_and_a_strip(synthetic_dataset, tmp_path):
 # ----------------------------------------------------------------------------------------- real simulator workers
 @pytest.fixture(scope="module")
 def sim_pool():
-  """One real simulator worker (push, 32x32, with depth), shared by the tests below."""
+  """One real simulator worker (push, 32x32, with depth, the front and the wrist camera), shared by the tests below."""
   from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
-  with SimPool(EnvSpec("push", resolution=32, depth=True), num_workers=1) as pool:
+  with SimPool(EnvSpec("push", resolution=32, depth=True, cameras=("front", "wrist")), num_workers=1) as pool:
     yield pool
 
 
@@ -344,7 +374,7 @@ def sim_pool():
 def real_dataset(sim_pool, tmp_path_factory):
   """The collect stage (`collect.run`) on the real worker: 2 train + 1 val episodes at 32x32 with depth; its path."""
   import roboshape.sim  # pylint: disable=import-outside-toplevel
-  config = _config("push", train=2, resolution=32, env__depth=True)
+  config = _config("push", train=2, resolution=32, env__depth=True, env__cameras=("front", "wrist"))
   workdir = str(tmp_path_factory.mktemp("real_run"))
   specs = []
 
@@ -388,6 +418,10 @@ def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
               seg=steps[0]["observation"]["segmentation"].shape.as_list(),
               depth=[steps[0]["observation"]["depth"].dtype.name,
                      steps[0]["observation"]["depth"].shape.as_list()],
+              wrist=[[steps[0]["observation"][k].dtype.name, steps[0]["observation"][k].shape.as_list()]
+                     for k in ("wrist_image", "wrist_segmentation", "wrist_depth")],
+              hand_in_wrist=sum(bool((s["observation"]["wrist_segmentation"].numpy() == 13).any()) for s in steps)
+                            / len(steps),
               state=[steps[0]["observation"]["state"].dtype.name,
                      steps[0]["observation"]["state"].shape.as_list()],
               first=[bool(s["is_first"]) for s in steps].index(True), last=bool(steps[-1]["is_last"]),
@@ -409,6 +443,8 @@ def test_real_workers_dataset_reads_with_plain_tfds_and_validates(real_dataset):
     assert e["success"] and e["task"] == "push" and e["env_version"].startswith("roboshape-envs")
     assert e["image"] == ["uint8", [32, 32, 3]] and e["seg"] == [32, 32] and e["depth"] == ["uint16", [32, 32]]
     assert e["state"] == ["float32", [65]]
+    assert e["wrist"] == [["uint8", [32, 32, 3]], ["uint8", [32, 32]], ["uint16", [32, 32]]]
+    assert e["hand_in_wrist"] > 0.9          # the wrist camera sees the fingers (id 13) in (nearly) every frame
     assert e["first"] == 0 and e["last"] and 0 < e["amax"] <= 1
   assert validate.main([real_dataset]) == 0
 
@@ -418,6 +454,7 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   (again,) = list(sim_pool.collect([stored["seed"]]))
   np.testing.assert_array_equal(stored["image"], again["image"])
   np.testing.assert_array_equal(stored["segmentation"], again["segmentation"])
+  np.testing.assert_array_equal(stored["wrist_image"], again["wrist_image"])
   np.testing.assert_array_equal(stored["depth"], again["depth"])
   np.testing.assert_array_equal(stored["state"], again["state"])
   # The state token a policy is trained on (from the dataset) is the one closed-loop control computes (from a worker).

@@ -3,8 +3,8 @@
   python -m roboshape.data.browse PATH --split train --episode 0 --out ep0.gif     # also writes ep0_strip.png
   python -m roboshape.data.browse PATH --episode 3 --out ep3.mp4 --scale 6 --frames 10
 
-Each frame shows the camera image next to its segmentation (object ids in fixed colours); --no-segmentation leaves
-the segmentation out. PATH is the dataset directory, or a workdir / data folder that holds one dataset.
+Each frame shows every camera's image next to its segmentation (object ids in fixed colours), the front camera's
+first and the others' after it (roboshape/envs/camera.py); --no-segmentation leaves the segmentation out. PATH is the dataset directory, or a workdir / data folder that holds one dataset.
 """
 import argparse
 import itertools
@@ -16,18 +16,22 @@ import numpy as np
 
 from roboshape import errors
 from roboshape.errors import UserError
+from roboshape.envs import camera
 from roboshape.envs import ids
 
 colorize = ids.colorize   # one colour per segmentation id
 
 
 def frames_of(episode: Dict[str, np.ndarray], scale: int = 4, segmentation: bool = True) -> np.ndarray:
-  """uint8 [S, H*scale, W*scale*(1 or 2) + gap, 3]: image (and segmentation) of every step, upscaled."""
-  panels = [episode["image"]]
-  if segmentation:
-    gap = np.full(episode["image"].shape[:2] + (1, 3), 255, np.uint8)
-    panels += [gap, colorize(episode["segmentation"])]
-  frames = np.concatenate(panels, axis=2)
+  """uint8 [S, H*scale, (W*(1 or 2) + gaps)*scale, 3]: each stored camera's image (and segmentation) of every
+  step, side by side with white gaps, upscaled."""
+  gap = np.full(episode["image"].shape[:2] + (1, 3), 255, np.uint8)
+  panels = []
+  for name in camera.CAMERAS:
+    image_key, seg_key, _ = camera.keys(name)
+    if image_key in episode:
+      panels += [gap, episode[image_key]] + ([gap, colorize(episode[seg_key])] if segmentation else [])
+  frames = np.concatenate(panels[1:], axis=2)
   return frames.repeat(scale, axis=1).repeat(scale, axis=2)
 
 

@@ -39,9 +39,9 @@ LEVEL = "train"
 SEED_BASES = {"train": 0, "val": 1_000_000}
 # The fields of a config that decide a dataset's content: a stored dataset must match them all.
 _SUMMARY_FIELDS = ("task", "level", "resolution", "min_distractors", "max_distractors", "max_episode_steps",
-                   "train_episodes", "val_episodes", "train_seed_base", "val_seed_base", "depth")
+                   "train_episodes", "val_episodes", "train_seed_base", "val_seed_base", "depth", "cameras")
 # Values of fields that datasets written before the field existed do not record.
-_SUMMARY_DEFAULTS = {"depth": False}
+_SUMMARY_DEFAULTS = {"depth": False, "cameras": ["front"]}
 _MAX_WORKER_RESTARTS = 3
 
 
@@ -69,6 +69,7 @@ def config_summary(config) -> Dict[str, Any]:
       "train_seed_base": SEED_BASES["train"],
       "val_seed_base": SEED_BASES["val"],
       "depth": bool(config.env.depth),
+      "cameras": list(config.env.cameras),     # a list, as roboshape.json stores it
       # Every dataset collected now stores the privileged state; not compared (_SUMMARY_FIELDS): a dataset of an
       # earlier version, without it, serves every encoder that does not need it.
       "state": True,
@@ -92,7 +93,8 @@ def summary_differences(stored: Mapping[str, Any], wanted: Mapping[str, Any]) ->
 # The config field each summary field comes from (val_episodes: from data.val_fraction and data.min_val_episodes).
 CONFIG_FIELDS = {"task": "task", "resolution": "env.resolution", "min_distractors": "env.min_distractors",
                  "max_distractors": "env.max_distractors", "max_episode_steps": "env.max_episode_steps",
-                 "train_episodes": "data.train_episodes", "depth": "env.depth"}
+                 "train_episodes": "data.train_episodes", "depth": "env.depth",
+                 "cameras": "env.cameras"}
 
 
 def own_dataset_differences(config, workdir: str) -> list:

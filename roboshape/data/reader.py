@@ -44,7 +44,7 @@ def _flatten(example: Dict[str, Any]) -> Dict[str, tf.Tensor]:
   """An RLDS episode (steps as a nested tf.data.Dataset) -> one dict of [S, ...] tensors."""
   steps = example["steps"].batch(_MAX_STEPS).get_single_element()
   meta = example["episode_metadata"]
-  optional = {k: steps["observation"][k] for k in ("depth", "state") if k in steps["observation"]}
+  optional = {k: v for k, v in steps["observation"].items() if k not in ("image", "segmentation")}  # depth, wrist_*
   return {
       **optional,
       "image": steps["observation"]["image"],
@@ -145,9 +145,10 @@ class ShardReader:
   (or another tf.errors.OpError) while iterating.
   """
 
-  def __init__(self, resolution: int, depth: bool = False, state: bool = False):
+  def __init__(self, summary: Dict[str, Any]):
+    """summary: the dataset's config as roboshape.json records it (resolution, depth, state, cameras)."""
     from roboshape.data import rlds  # pylint: disable=import-outside-toplevel
-    feats = rlds.features(resolution, depth, state)
+    feats = rlds.features_of(summary)
     self._decode = tf.function(lambda record: _flatten(feats.deserialize_example(record)))
 
   def read(self, file: str) -> Iterator[Dict[str, Any]]:

@@ -10,6 +10,10 @@ Each example is one episode (RLDS): `steps` with S = T + 1 steps and `episode_me
                                                    4 target/bin, 5+i distractor i)
   steps/observation/depth         uint16 [H, W]    camera depth in millimetres (only in datasets collected with
                                                    env.depth=True; roboshape.json's config says "depth": true)
+  steps/observation/wrist_image, wrist_segmentation, (wrist_depth)
+                                                   the wrist camera's frames, as the front camera's above (only in
+                                                   datasets collected with env.cameras naming it; roboshape.json's
+                                                   config lists the cameras; roboshape/envs/camera.py names them)
   steps/observation/state         float32 [65]     the privileged simulator state (roboshape/envs/state.py: tcp pose,
                                                    gripper, arm joints, cube pose, goal, distractors); in datasets
                                                    of roboshape.json "state": true (all collected since it exists)
@@ -44,6 +48,7 @@ from tensorflow_datasets.core import example_serializer
 from roboshape import data as data_lib
 from roboshape import fileio
 from roboshape.errors import UserError
+from roboshape.envs import camera
 from roboshape.envs import state as state_lib
 
 LAYOUT = "roboshape-rlds-1"
@@ -52,24 +57,28 @@ ACTION_DIM = 7
 DESCRIPTION = (
     "RoboShape expert demonstrations (Franka Panda, ManiSkill3) in the RLDS layout: one example per episode with "
     "`steps` (observation/image uint8 HxWx3, observation/segmentation uint8 HxW object ids, with env.depth also "
-    "observation/depth uint16 HxW millimetres, observation/state float32[65] the privileged simulator state, "
+    "observation/depth uint16 HxW millimetres, with env.cameras naming the wrist camera also its "
+    "observation/wrist_image, wrist_segmentation (and wrist_depth), observation/state float32[65] the privileged simulator state, "
     "action float32[7] as executed, reward, discount, is_first, is_last, is_terminal) and `episode_metadata` (task, level, seed, success, "
     "env_version). The last step of an episode holds the final observation and a zero action. Only successful "
     "expert episodes are stored; metadata.json holds the collection config.")
 
 
-def features(resolution: int, depth: bool = False, state: bool = False) -> tfds.features.FeaturesDict:
-  """The TFDS features of an episode at `resolution` x `resolution` pixels (with observation/depth if `depth`,
-  observation/state if `state`)."""
+def features(resolution: int, depth: bool = False, state: bool = False,
+             cameras: Sequence[str] = ("front",)) -> tfds.features.FeaturesDict:
+  """The TFDS features of an episode at `resolution` x `resolution` pixels: each camera's image and segmentation
+  (and depth if `depth`) under its keys (roboshape/envs/camera.py), observation/state if `state`."""
   scalar = tfds.features.Scalar
-  observation = {
-      "image": tfds.features.Image(shape=(resolution, resolution, 3), dtype=np.uint8, encoding_format="png"),
-      "segmentation": tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint8,
-                                           encoding=tfds.features.Encoding.ZLIB),
-  }
-  if depth:
-    observation["depth"] = tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint16,
-                                                encoding=tfds.features.Encoding.ZLIB)
+  observation = {}
+  for name in cameras:
+    image, segmentation, depth_key = camera.keys(name)
+    observation[image] = tfds.features.Image(shape=(resolution, resolution, 3), dtype=np.uint8,
+                                             encoding_format="png")
+    observation[segmentation] = tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint8,
+                                                     encoding=tfds.features.Encoding.ZLIB)
+    if depth:
+      observation[depth_key] = tfds.features.Tensor(shape=(resolution, resolution), dtype=np.uint16,
+                                                    encoding=tfds.features.Encoding.ZLIB)
   if state:
     observation["state"] = tfds.features.Tensor(shape=(state_lib.DIM,), dtype=np.float32,
                                                 doc=state_lib.describe())
@@ -93,6 +102,12 @@ def features(resolution: int, depth: bool = False, state: bool = False) -> tfds.
   })
 
 
+def features_of(summary: Mapping[str, Any]) -> tfds.features.FeaturesDict:
+  """The features of the dataset roboshape.json's config `summary` describes (resolution, depth, state, cameras)."""
+  return features(int(summary["resolution"]), bool(summary.get("depth", False)), bool(summary.get("state", False)),
+                  tuple(summary.get("cameras", ("front",))))
+
+
 def to_rlds(episode: Mapping[str, Any]) -> Dict[str, Any]:
   """A simulator episode (image [T+1,H,W,3], segmentation [T+1,H,W], action [T,7], reward [T], ...) -> RLDS example.
 
@@ -107,12 +122,17 @@ def to_rlds(episode: Mapping[str, Any]) -> Dict[str, Any]:
   if segmentation.shape != image.shape[:3] or action.shape[0] != num_steps - 1 or reward.shape[0] != num_steps - 1:
     raise ValueError(f"episode of seed {episode.get('seed')}: inconsistent shapes image {image.shape}, "
                      f"segmentation {segmentation.shape}, action {action.shape}, reward {reward.shape}")
-  observation = {"image": image, "segmentation": segmentation}
-  if "depth" in episode:
-    observation["depth"] = np.asarray(episode["depth"], np.uint16)
-    if observation["depth"].shape != segmentation.shape:
-      raise ValueError(f"episode of seed {episode.get('seed')}: depth {observation['depth'].shape}, "
-                       f"segmentation {segmentation.shape}")
+  observation = {}
+  for name in camera.CAMERAS:
+    keys = camera.keys(name)
+    if keys[0] not in episode:
+      continue
+    for key, dtype in zip(keys, (np.uint8, np.uint8, np.uint16)):
+      if key in episode:
+        observation[key] = np.asarray(episode[key], dtype)
+        if observation[key].shape[:3] != image.shape[:3]:
+          raise ValueError(f"episode of seed {episode.get('seed')}: {key} {observation[key].shape}, "
+                           f"image {image.shape}")
   if "state" in episode:
     observation["state"] = np.asarray(episode["state"], np.float32)
     if observation["state"].shape != (num_steps, state_lib.DIM):
@@ -232,8 +252,7 @@ def rewrite_shard(path: str, state: Mapping[str, Any], split: str, index: int,
   if seeds != shard["seeds"]:
     raise ValueError(f"shard {shard['file']} records seeds {shard['seeds']}, got episodes of seeds {seeds}")
   config = state["config"]
-  serialize = EpisodeSerializer(features(int(config["resolution"]), bool(config.get("depth", False)),
-                                         bool(config.get("state", False))))
+  serialize = EpisodeSerializer(features_of(config))
   final = os.path.join(path, shard["file"])
   tmp = final + ".tmp"
   try:
@@ -295,7 +314,8 @@ class DatasetWriter:
     self.resolution = int(state["config"]["resolution"])
     self.depth = bool(state["config"].get("depth", False))
     self.has_state = bool(state["config"].get("state", False))
-    self.features = features(self.resolution, self.depth, self.has_state)
+    self.cameras = tuple(state["config"].get("cameras", ("front",)))
+    self.features = features_of(state["config"])
     self._serialize = EpisodeSerializer(self.features)
     os.makedirs(path, exist_ok=True)
     if fresh:   # roboshape.json before any TFDS metadata: metadata without it is not roboshape's (collect.py)
@@ -344,6 +364,9 @@ class DatasetWriter:
       if ("depth" in e) != self.depth:
         raise ValueError(f"episode of seed {e['seed']} {'has' if 'depth' in e else 'lacks'} depth, the dataset "
                          f"{'stores' if self.depth else 'does not store'} it")
+      stored = tuple(c for c in camera.CAMERAS if camera.keys(c)[0] in e)
+      if stored != self.cameras:
+        raise ValueError(f"episode of seed {e['seed']} has the cameras {stored}, the dataset stores {self.cameras}")
       if ("state" in e) != self.has_state:
         raise ValueError(f"episode of seed {e['seed']} {'has' if 'state' in e else 'lacks'} a state, the dataset "
                          f"{'stores' if self.has_state else 'does not store'} it")
@@ -456,6 +479,7 @@ def write_dataset(path: str, splits: Mapping[str, Sequence[Mapping[str, Any]]],
   summary.setdefault("level", first["level"])
   summary.setdefault("resolution", int(first["image"].shape[1]))
   summary.setdefault("depth", "depth" in first)
+  summary.setdefault("cameras", [c for c in camera.CAMERAS if camera.keys(c)[0] in first])
   summary.setdefault("state", "state" in first)
   writer = DatasetWriter(path, summary, {k: len(v) for k, v in splits.items()})
   for split, episodes in splits.items():

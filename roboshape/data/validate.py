@@ -19,6 +19,7 @@ import numpy as np
 from roboshape import data as data_lib
 from roboshape import errors
 from roboshape.errors import UserError
+from roboshape.envs import camera
 from roboshape.envs import ids
 from roboshape.envs import state as state_lib
 
@@ -55,8 +56,7 @@ def find_dataset(path: str) -> str:
 def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any], where: str) -> List[str]:
   problems = []
   res = int(config["resolution"])
-  image, seg, action = ep["image"], ep["segmentation"], ep["action"]
-  num_steps = image.shape[0]
+  action, num_steps = ep["action"], ep["image"].shape[0]
   if ep["seed"] != expected_seed:
     problems.append(f"{where}: seed {ep['seed']}, roboshape.json records {expected_seed}")
   if not ep["success"]:
@@ -64,17 +64,22 @@ def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any
   if ep["task"] != config["task"] or ep["level"] != config["level"]:
     problems.append(f"{where}: task/level {ep['task']}/{ep['level']}, "
                     f"the dataset is {config['task']}/{config['level']}")
-  if image.dtype != np.uint8 or image.shape[1:] != (res, res, 3):
-    problems.append(f"{where}: image {image.dtype} {image.shape}, want uint8 [S,{res},{res},3]")
-  if seg.dtype != np.uint8 or seg.shape != (num_steps, res, res):
-    problems.append(f"{where}: segmentation {seg.dtype} {seg.shape}, want uint8 [{num_steps},{res},{res}]")
-  if config.get("depth", False):
-    depth = ep.get("depth")
-    if depth is None or depth.dtype != np.uint16 or depth.shape != (num_steps, res, res):
-      problems.append(f"{where}: depth {getattr(depth, 'dtype', None)} {getattr(depth, 'shape', None)}, "
-                      f"want uint16 [{num_steps},{res},{res}]")
-    elif not depth.any():
-      problems.append(f"{where}: depth is zero everywhere")
+  for name in config.get("cameras", ("front",)):      # each camera's frames (roboshape/envs/camera.py)
+    image_key, seg_key, depth_key = camera.keys(name)
+    image, seg = ep.get(image_key), ep.get(seg_key)
+    if image is None or image.dtype != np.uint8 or image.shape != (num_steps, res, res, 3):
+      problems.append(f"{where}: {image_key} {getattr(image, 'dtype', None)} {getattr(image, 'shape', None)}, "
+                      f"want uint8 [{num_steps},{res},{res},3]")
+    if seg is None or seg.dtype != np.uint8 or seg.shape != (num_steps, res, res):
+      problems.append(f"{where}: {seg_key} {getattr(seg, 'dtype', None)} {getattr(seg, 'shape', None)}, "
+                      f"want uint8 [{num_steps},{res},{res}]")
+    if config.get("depth", False):
+      depth = ep.get(depth_key)
+      if depth is None or depth.dtype != np.uint16 or depth.shape != (num_steps, res, res):
+        problems.append(f"{where}: {depth_key} {getattr(depth, 'dtype', None)} {getattr(depth, 'shape', None)}, "
+                        f"want uint16 [{num_steps},{res},{res}]")
+      elif not depth.any():
+        problems.append(f"{where}: {depth_key} is zero everywhere")
   if config.get("state", False):
     state = ep.get("state")
     if state is None or state.dtype != np.float32 or state.shape != (num_steps, state_lib.DIM):
@@ -91,6 +96,9 @@ def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any
     problems.append(f"{where}: actions outside [-1, 1] (max |a| = {np.abs(action).max():.4g})")
   if np.any(action[-1] != 0):
     problems.append(f"{where}: the last step's action is not zero")
+  image, seg = ep["image"], ep["segmentation"]             # the front view's
+  if image.shape != (num_steps, res, res, 3) or seg.shape != (num_steps, res, res):
+    return problems
   flat = image.reshape(num_steps, -1)
   blank = np.nonzero(flat.min(axis=1) == flat.max(axis=1))[0]
   if len(blank):
@@ -132,8 +140,7 @@ def validate(path: str) -> Dict[str, Any]:
     problems.append(f"TFDS cannot read the metadata: {str(e).strip().splitlines()[0]}")
     splits_info = {}
   seen: Dict[int, str] = {}
-  shard_reader = reader.ShardReader(int(config["resolution"]), bool(config.get("depth", False)),
-                                    bool(config.get("state", False)))
+  shard_reader = reader.ShardReader(config)
   for split, info in state["splits"].items():
     shards = info["shards"]
     recorded = [len(s["seeds"]) for s in shards]

@@ -1,4 +1,12 @@
-"""The front camera's placement and its pinhole model, pure numpy: where a world point lands in the image.
+"""The cameras a scene can render, named here alone, and the front camera's pinhole model, pure numpy.
+
+CAMERAS lists them: "front" (fixed, looking at the table) and "wrist" (mounted on the hand, looking along the
+fingers, where ManiSkill's panda_wristcam mounts its camera). A camera's frames go by its prefix (`keys`): the
+front view as "image", "segmentation" and "depth" (the names the open robot datasets give their main view), the
+wrist view as "wrist_image", "wrist_segmentation" and "wrist_depth"; every layer that stores or shows frames asks
+`keys` for them, so a third camera is one entry here (and its mount in roboshape/envs/scene.py).
+
+The front camera's pinhole model says where a world point lands in its image:
 
 The scene (roboshape/envs/scene.py) places the camera with ManiSkill's look-at at EYE, looking at TARGET, with the
 vertical field of view FOV on a square image. Its frame is SAPIEN's: x forward (the optical axis), y left, z up.
@@ -9,7 +17,20 @@ optical axis in metres, what the simulator's depth image holds.
   row, col, depth = camera.project(points)     # world [..., 3] -> each [...]
   points = camera.unproject(row, col, depth)   # the inverse, for points in front of the camera
 """
+from typing import Sequence, Tuple
+
 import numpy as np
+
+CAMERAS = ("front", "wrist")
+FRAME_KEYS = ("image", "segmentation", "depth")   # a camera's frames, the front camera's names
+_PREFIX = {"front": "", "wrist": "wrist_"}
+
+# The wrist camera: on the hand link, 3.5 cm along its x and 3.6 cm up its z, turned to look along the fingers (+z)
+# and shifted 2 cm sideways and 1.15 cm forward, as panda_v3.urdf's camera_link; ManiSkill's vertical FOV for it.
+WRIST_LINK = "panda_hand"
+WRIST_MOUNT = ((0.035, 0.0, 0.036), (0.0, -1.5707, 3.1415))   # xyz, rpy of the camera's base on the hand
+WRIST_OFFSET = (0.0, 0.02, 0.0115)                             # the camera in its base's frame
+WRIST_FOV = np.pi / 2
 
 EYE = (0.42, 0.0, 0.34)
 TARGET = (-0.16, 0.0, 0.02)
@@ -42,3 +63,24 @@ def unproject(row, col, depth):
   scale = np.float32(np.tan(FOV / 2))
   local = jnp.stack([depth, -col * scale * depth, -row * scale * depth], axis=-1)
   return local @ rotation().T.astype(np.float32) + np.asarray(EYE, np.float32)
+
+
+def keys(camera: str) -> Tuple[str, str, str]:
+  """The frame keys of `camera`: its image, segmentation and depth (FRAME_KEYS with its prefix)."""
+  return tuple(_PREFIX[camera] + key for key in FRAME_KEYS)
+
+
+def all_keys(cameras: Sequence[str]) -> Tuple[str, ...]:
+  """Every frame key of `cameras`, camera by camera."""
+  return tuple(key for c in cameras for key in keys(c))
+
+
+def check(cameras: Sequence[str]) -> Tuple[str, ...]:
+  """`cameras` as a tuple; ValueError, saying what to do, unless they are distinct names of CAMERAS with the front
+  one among them (the encoders read the front view)."""
+  cameras = tuple(cameras) if not isinstance(cameras, str) else (cameras,)
+  unknown = [c for c in cameras if c not in CAMERAS]
+  if unknown or len(set(cameras)) != len(cameras) or "front" not in cameras:
+    raise ValueError(f"env.cameras={cameras!r}: use distinct names of {', '.join(CAMERAS)}, with \"front\" among "
+                     "them, e.g. (\"front\", \"wrist\").")
+  return cameras

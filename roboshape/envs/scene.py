@@ -1,4 +1,5 @@
-"""The RoboShape scene shared by the three tasks: Panda, table, red cube, distractors, backdrop, front camera.
+"""The RoboShape scene shared by the three tasks: Panda, table, red cube, distractors, backdrop, its cameras (the
+front one, and the wrist one when asked for: roboshape/envs/camera.py).
 
 Every reset rebuilds the scene (ManiSkill reconfiguration), so the number of distractors, their shapes, sizes and
 colors, the background color and the table color all change per episode. Randomness comes only from the episode
@@ -20,6 +21,7 @@ from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
+from transforms3d.euler import euler2quat
 
 from roboshape.envs import camera
 from roboshape.envs import ids
@@ -65,11 +67,13 @@ def render_material(color, emissive: bool = False) -> sapien.render.RenderMateri
 
 
 class RoboShapeEnv(BaseEnv):
-  """Panda on a table with the red cube, 1-4 random distractors and a colored backdrop; one front camera.
+  """Panda on a table with the red cube, 1-4 random distractors and a colored backdrop; the front camera and any
+  other of `cameras`.
 
   Args (besides BaseEnv's):
     level: generalization level, one of palettes.LEVEL_NAMES.
-    resolution: side of the square front camera image, pixels.
+    resolution: side of every camera's square image, pixels.
+    cameras: the cameras rendered (roboshape/envs/camera.py CAMERAS), the front one among them.
     min_distractors, max_distractors: number of distractors per episode, uniform in this range.
     robot_init_qpos_noise: half-width of the uniform noise added to the arm's rest joints, radians.
   """
@@ -81,8 +85,9 @@ class RoboShapeEnv(BaseEnv):
 
   def __init__(self, *args, level: str = "train", resolution: int = 64, min_distractors: int = 1,
                max_distractors: int = 4, robot_uids: str = "panda", robot_init_qpos_noise: float = 0.08,
-               **kwargs):
+               cameras: Tuple[str, ...] = ("front",), **kwargs):
     self.level = palettes.get_level(level)
+    self.cameras = camera.check(cameras)
     if not 0 <= min_distractors <= max_distractors:
       raise ValueError(f"need 0 <= min_distractors <= max_distractors, got {min_distractors}, {max_distractors}")
     self.resolution = int(resolution)
@@ -99,8 +104,17 @@ class RoboShapeEnv(BaseEnv):
   # ---------------------------------------------------------------------------------------------- scene
   @property
   def _default_sensor_configs(self):
-    pose = sapien_utils.look_at(eye=CAMERA_EYE, target=CAMERA_TARGET)
-    return [CameraConfig("front", pose, self.resolution, self.resolution, CAMERA_FOV, 0.01, 10.0)]
+    configs = []
+    for name in self.cameras:
+      if name == "front":
+        pose = sapien_utils.look_at(eye=CAMERA_EYE, target=CAMERA_TARGET)
+        configs.append(CameraConfig("front", pose, self.resolution, self.resolution, CAMERA_FOV, 0.01, 10.0))
+      else:  # "wrist": on the hand, moving with it
+        (xyz, rpy), offset = camera.WRIST_MOUNT, camera.WRIST_OFFSET
+        pose = sapien.Pose(p=list(xyz), q=list(euler2quat(*rpy))) * sapien.Pose(p=list(offset))
+        configs.append(CameraConfig("wrist", pose, self.resolution, self.resolution, camera.WRIST_FOV, 0.01, 10.0,
+                                    mount=self.agent.robot.links_map[camera.WRIST_LINK]))
+    return configs
 
   @property
   def _default_human_render_camera_configs(self):
@@ -308,9 +322,9 @@ class RoboShapeEnv(BaseEnv):
                           self.agent.robot.get_qpos()[:, :7].cpu().numpy(), s["cube_p"].cpu().numpy(),
                           s["cube_q"].cpu().numpy(), s["goal_p"].cpu().numpy(), rows, present)
 
-  def frames(self, obs) -> Tuple[np.ndarray, np.ndarray]:
-    """The front camera's rgb uint8 [N, H, W, 3] and RoboShape segmentation uint8 [N, H, W] from an observation."""
-    data = obs["sensor_data"]["front"]
+  def frames(self, obs, name: str = "front") -> Tuple[np.ndarray, np.ndarray]:
+    """Camera `name`'s rgb uint8 [N, H, W, 3] and RoboShape segmentation uint8 [N, H, W] from an observation."""
+    data = obs["sensor_data"][name]
     rgb = data["rgb"].cpu().numpy().astype(np.uint8)
     seg = np.zeros(rgb.shape[:3], np.uint8)
     if "segmentation" in data:
@@ -320,9 +334,9 @@ class RoboShapeEnv(BaseEnv):
     return rgb, seg
 
   @staticmethod
-  def depth(obs) -> np.ndarray:
-    """The front camera's depth uint16 [N, H, W] in millimetres (an env made with obs_mode "rgb+depth+...")."""
-    depth = obs["sensor_data"]["front"]["depth"][..., 0].cpu().numpy().astype(np.int64)
+  def depth(obs, name: str = "front") -> np.ndarray:
+    """Camera `name`'s depth uint16 [N, H, W] in millimetres (an env made with obs_mode "rgb+depth+...")."""
+    depth = obs["sensor_data"][name]["depth"][..., 0].cpu().numpy().astype(np.int64)
     return np.clip(depth, 0, np.iinfo(np.uint16).max).astype(np.uint16)
 
   def _get_obs_extra(self, info: dict):

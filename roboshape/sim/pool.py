@@ -27,6 +27,7 @@ from typing import Dict, Iterable, Iterator, List, Optional, Sequence
 import numpy as np
 
 from roboshape import envs
+from roboshape.envs import camera
 from roboshape import fileio
 from roboshape.errors import UserError
 from roboshape.sim.spec import EnvSpec, check_seeds
@@ -110,11 +111,10 @@ class _Proc:
 
 
 def _stack(frames: List[dict]) -> Dict[str, np.ndarray]:
-  """The workers' frame dicts stacked into arrays [N, ...] (with depth where the spec asks for it)."""
-  depth = {"depth": np.stack([o["depth"] for o in frames])} if "depth" in frames[0] else {}
-  return dict(**depth, image=np.stack([o["image"] for o in frames]),
-              reached=np.stack([o["reached"] for o in frames]).astype(bool),
-              segmentation=np.stack([o["segmentation"] for o in frames]),
+  """The workers' frame dicts stacked into arrays [N, ...] (every camera's frames: image, segmentation, depth where
+  the spec asks for it, wrist_image, ...)."""
+  views = {k: np.stack([o[k] for o in frames]) for k in camera.all_keys(camera.CAMERAS) if k in frames[0]}
+  return dict(**views, reached=np.stack([o["reached"] for o in frames]).astype(bool),
               state=np.stack([o["state"] for o in frames]).astype(np.float32),
               success=np.array([o["success"] for o in frames], bool),
               done=np.array([o["done"] for o in frames], bool),

@@ -1,14 +1,15 @@
 """EnvSpec: what a simulator worker builds. Pure python: importing it never imports the simulator."""
 import dataclasses
 import numbers
-from typing import Iterable, List, Optional
+from typing import Iterable, List, Optional, Tuple
 
 from roboshape import envs
+from roboshape.envs import camera
 from roboshape.errors import UserError
 
 MAX_SEED = 2**31 - 1
-# the frame dict's keys that come from the camera: an env reset with render False returns them as zeros
-CAMERA_KEYS = ("image", "segmentation", "depth")
+# the frame dict's keys that come from a camera: an env reset with render False returns them as zeros
+CAMERA_KEYS = camera.all_keys(camera.CAMERAS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -17,7 +18,8 @@ class EnvSpec:
 
   max_episode_steps: 0 uses the task's own horizon (>= 1.5x the expert's 95th-percentile episode length).
   sim_backend: "physx_cpu" or "physx_cuda" (the physics on a GPU); either way a worker owns one env.
-  depth: also render the camera's depth (uint16 millimetres), stored with collected episodes.
+  depth: also render the cameras' depth (uint16 millimetres), stored with collected episodes.
+  cameras: the cameras rendered (roboshape/envs/camera.py), the front one among them.
   """
   task: str
   level: str = "train"
@@ -27,10 +29,12 @@ class EnvSpec:
   max_episode_steps: int = 0
   sim_backend: str = "physx_cpu"
   depth: bool = False
+  cameras: Tuple[str, ...] = ("front",)
 
   def __post_init__(self):
     try:
       envs.check_args(self.task, self.level, self.resolution)
+      object.__setattr__(self, "cameras", camera.check(self.cameras))
     except ValueError as e:
       raise UserError(str(e)) from None
     for name in ("min_distractors", "max_distractors", "max_episode_steps"):
@@ -52,7 +56,7 @@ class EnvSpec:
     return cls(task=config.task, level=level or "train", resolution=int(env.resolution),
                min_distractors=int(env.min_distractors), max_distractors=int(env.max_distractors),
                max_episode_steps=int(env.max_episode_steps), sim_backend=str(env.sim_backend),
-               depth=bool(env.depth))
+               depth=bool(env.depth), cameras=tuple(env.cameras))
 
 
 def check_seeds(seeds: Iterable) -> List[int]:

@@ -6,8 +6,9 @@ never imports TensorFlow or JAX). Requests are (command, argument) tuples; repli
 
 Commands:
   collect seed    -> the episode dict of roboshape/sim/__init__.py (the oracle expert run from `seed`, with the
-                     privileged state; with depth when the spec asks for depth)
-  reset (seed, render) -> one env's frame dict (image, segmentation, state, [depth,] success, done, elapsed,
+                     privileged state; with depth when the spec asks for depth; every camera of the spec's
+                     `cameras` under its keys, roboshape/envs/camera.py: image, wrist_image, ...)
+  reset (seed, render) -> one env's frame dict (each camera's image, segmentation [and depth], state, success, done, elapsed,
                      reached: bool [M], the task's milestones reached so far, roboshape.envs.MILESTONES);
                      with render False the camera is not rendered until the next reset: image, segmentation (and
                      depth) are zeros, the state is real (a step then costs the physics alone, several times
@@ -36,12 +37,15 @@ class Worker:
     torch.set_num_threads(1)
     import mani_skill  # pylint: disable=import-outside-toplevel
     from roboshape import envs  # pylint: disable=import-outside-toplevel
+    from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
     from roboshape.envs import experts  # pylint: disable=import-outside-toplevel
     self.np, self.torch = np, torch
+    self.cameras = camera.check(spec.get("cameras", ("front",)))
+    self.keys = {name: camera.keys(name) for name in self.cameras}       # image, segmentation, depth keys
     backend = {"cpu": "physx_cpu", "gpu": "physx_cuda"}.get(spec["sim_backend"], spec["sim_backend"])
     self.env = envs.make_env(spec["task"], spec["level"], resolution=spec["resolution"],
                              min_distractors=spec["min_distractors"], max_distractors=spec["max_distractors"],
-                             sim_backend=backend,
+                             sim_backend=backend, cameras=self.cameras,
                              obs_mode="rgb+depth+segmentation" if spec.get("depth") else "rgb+segmentation")
     self.task = self.env.unwrapped
     self.obs_mode = self.task.obs_mode
@@ -49,7 +53,7 @@ class Worker:
     self.horizon = spec["max_episode_steps"] or self.task.HORIZON
     self.expert = experts.make_expert(spec["task"], self.task.num_envs, self.task.device)
     self.env_version = f"{envs.ENV_VERSION}+mani_skill-{mani_skill.__version__}"
-    self._frame = self._depth = self._state = self._start = None
+    self._frame = self._state = self._start = None
     self.reached = np.zeros(len(envs.MILESTONES[spec["task"]]), bool)
     self.elapsed, self.success, self.done = 0, False, True
     # Every reset rebuilds the scene, and ManiSkill then runs gc.collect(), which scans every object of this process:
@@ -59,15 +63,23 @@ class Worker:
   def info(self) -> dict:
     return dict(horizon=self.horizon, env_version=self.env_version, pid=os.getpid())
 
-  def _observe(self, obs):
-    np, r = self.np, self.spec["resolution"]
+  def _observe(self, obs) -> dict:
+    """Every camera's frames {image: uint8 [H, W, 3], segmentation: uint8 [H, W], (depth: uint16 [H, W]), and the
+    other cameras' under their keys}: zeros when the episode is not rendered."""
+    np, r, depth = self.np, self.spec["resolution"], bool(self.spec.get("depth"))
     self._state = self.task.state_vector()[0]
-    if "sensor_data" not in obs:  # not rendering this episode (reset with render False)
-      self._depth = np.zeros((r, r), np.uint16) if self.spec.get("depth") else None
-      return np.zeros((r, r, 3), np.uint8), np.zeros((r, r), np.uint8)
-    rgb, seg = self.task.frames(obs)
-    self._depth = self.task.depth(obs)[0] if self.spec.get("depth") else None
-    return rgb[0], seg[0]
+    views = {}
+    for name, (image, segmentation, depth_key) in self.keys.items():
+      if "sensor_data" not in obs:  # not rendering this episode (reset with render False)
+        views[image], views[segmentation] = np.zeros((r, r, 3), np.uint8), np.zeros((r, r), np.uint8)
+        if depth:
+          views[depth_key] = np.zeros((r, r), np.uint16)
+        continue
+      rgb, seg = self.task.frames(obs, name)
+      views[image], views[segmentation] = rgb[0], seg[0]
+      if depth:
+        views[depth_key] = self.task.depth(obs, name)[0]
+    return views
 
   def _reset(self, seed: int, render: bool = True):
     # ManiSkill captures the cameras in get_obs() unless the obs mode is a state one; switching the mode per
@@ -88,22 +100,19 @@ class Worker:
     self.done = self.success or self.elapsed >= self.horizon
     return self._observe(obs), float(reward[0])
 
-  def _frame_dict(self, image, seg) -> dict:
-    self._frame = (image, seg, self._state, self._depth)
+  def _frame_dict(self, views: dict) -> dict:
+    self._frame = (views, self._state)
     return self._last_frame()
 
   def _last_frame(self) -> dict:
-    image, seg, state, depth = self._frame
-    out = dict(image=image, segmentation=seg, state=state, success=self.success, done=self.done,
-               elapsed=self.elapsed, reached=self.reached.copy())
-    if depth is not None:
-      out["depth"] = depth
-    return out
+    views, state = self._frame
+    return dict(views, state=state, success=self.success, done=self.done, elapsed=self.elapsed,
+                reached=self.reached.copy())
 
   def reset(self, arg) -> dict:
     """arg: (seed, render), or a seed alone (rendered)."""
     seed, render = arg if isinstance(arg, (tuple, list)) else (arg, True)
-    return self._frame_dict(*self._reset(seed, bool(render)))
+    return self._frame_dict(self._reset(seed, bool(render)))
 
   def step(self, action) -> dict:
     np = self.np
@@ -112,32 +121,29 @@ class Worker:
       if self._frame is None:
         raise RuntimeError("step before reset: call pool.reset(seeds) first")
       return self._last_frame()
-    (image, seg), _ = self._step(action)
-    return self._frame_dict(image, seg)
+    views, _ = self._step(action)
+    return self._frame_dict(views)
 
   def collect(self, seed: int) -> dict:
     """Runs the oracle expert from `seed` until success or the horizon; the whole episode dict
     (roboshape/sim/__init__.py)."""
     np = self.np
-    image, seg = self._reset(seed)
-    images, segs, depths, states, actions, rewards = [image], [seg], [self._depth], [self._state], [], []
+    views = [self._reset(seed)]
+    states, actions, rewards = [self._state], [], []
     while not self.done:
       action = self.expert.act(self.task.privileged_state()).cpu().numpy().astype(np.float32)[0]
-      (image, seg), reward = self._step(action)
-      images.append(image)
-      segs.append(seg)
-      depths.append(self._depth)
+      frame, reward = self._step(action)
+      views.append(frame)
       states.append(self._state)
       actions.append(action)
       rewards.append(reward)
     episode = dict(task=self.spec["task"], level=self.spec["level"], seed=int(seed), success=self.success,
                    env_version=self.env_version, terminated=self.success,
-                   image=np.stack(images).astype(np.uint8), segmentation=np.stack(segs).astype(np.uint8),
                    state=np.stack(states).astype(np.float32),
                    action=np.stack(actions).astype(np.float32).reshape(-1, 7),
                    reward=np.asarray(rewards, np.float32))
-    if self.spec.get("depth"):
-      episode["depth"] = np.stack(depths).astype(np.uint16)
+    for key in views[0]:                   # each camera's image, segmentation (and depth), same dtypes
+      episode[key] = np.stack([v[key] for v in views])
     return episode
 
 
