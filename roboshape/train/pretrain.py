@@ -193,6 +193,21 @@ def reconstruction_loss(model, out, frames, depth, depth_weight: float, pixel_we
   return loss, terms
 
 
+class _TrainStep:
+  """A jitted train step whose last argument, the pixel weights, may be left out (jit's in_shardings name every
+  positional argument, so it is always passed, None when absent). `lower` as jax.jit's; `__wrapped__` the step."""
+
+  def __init__(self, step, in_shardings, out_shardings):
+    self.__wrapped__ = step
+    self._jitted = jax.jit(step, in_shardings=in_shardings, out_shardings=out_shardings)
+
+  def __call__(self, state, video, depth, first, key, pixel_weight=None):
+    return self._jitted(state, video, depth, first, key, pixel_weight)
+
+  def lower(self, state, video, depth, first, key, pixel_weight=None):
+    return self._jitted.lower(state, video, depth, first, key, pixel_weight)
+
+
 class Compiled:
   """The model, optimizer and jitted train step of a run's pretraining: the model its encoder names (`model_of`),
   trained on `config.pretrain.train` by its loss (`reconstruction_loss` unless it names another)."""
@@ -207,10 +222,10 @@ class Compiled:
     self.depth_weight = savi.depth_weight(config)
     self.conditional = savi.conditional(model)     # its first slots come from the first frame's cues
     self.mask_weight = float(tc.mask_weight)
-    self.train_step = jax.jit(self._train_step,
-                              in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch, self.dp.batch,
-                                            self.dp.replicated, self.dp.batch),
-                              out_shardings=(self.dp.replicated, self.dp.replicated))
+    self.train_step = _TrainStep(self._train_step,
+                                 in_shardings=(self.dp.replicated, self.dp.batch, self.dp.batch, self.dp.batch,
+                                               self.dp.replicated, self.dp.batch),
+                                 out_shardings=(self.dp.replicated, self.dp.replicated))
 
   def init_state(self, key: jax.Array, video_shape: Sequence[int]) -> Dict[str, Any]:
     """The step-0 train state {step, params, opt_state} for clips of shape [B, L, H, W, 3]."""
