@@ -112,7 +112,8 @@ def time_rounds(step, state, args, rounds: int, steps: int) -> list:
 
 
 def reconstruction_inputs(comp, config):
-  """(state, video, depth, first, key) of a pretrain step: savi_speed.synthetic_inputs at the config's batch and clips."""
+  """(state, video, depth, first, key, pixel_weight) of a pretrain step: savi_speed.synthetic_inputs at the config's
+  batch and clips."""
   t, res = config.pretrain.train, int(config.env.resolution)
   return savi_speed.synthetic_inputs(comp, (int(t.batch_size), int(t.clip_length), res, res, 3))
 
@@ -120,12 +121,12 @@ def reconstruction_inputs(comp, config):
 def measure_reconstruction(name: str, comp, config, rounds: int, steps: int) -> Measured:
   """A pretrain step (pretrain.Compiled: SAVi's or the AE's) on random uint8 clips of the config's batch and clip
   length, state and batch placed as benchmarks/savi_speed.py and the pretrain stage place them."""
-  state, video, depth, first, key = reconstruction_inputs(comp, config)
-  step_flops = flops.step_flops(comp.train_step, state, video, depth, first, key)   # first: it fails in seconds, if at all
+  state, *inputs = reconstruction_inputs(comp, config)
+  step_flops = flops.step_flops(comp.train_step, state, *inputs)   # first: it fails in seconds, if at all
   start = time.perf_counter()
-  compiled = comp.train_step.lower(state, video, depth, first, key).compile()
+  compiled = comp.train_step.lower(state, *inputs).compile()
   compile_s = time.perf_counter() - start
-  times = time_rounds(compiled, state, (video, depth, first, key), rounds, steps)
+  times = time_rounds(compiled, state, tuple(inputs), rounds, steps)
   return Measured(name, float(np.median(times)), times, step_flops, compile_s, parameter_count(state["params"]))
 
 

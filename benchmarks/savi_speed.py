@@ -26,10 +26,11 @@ from roboshape.train import pretrain  # pylint: disable=wrong-import-position
 
 
 def synthetic_inputs(comp, shape):
-  """(state, video, depth, first, key) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B,
+  """(state, video, depth, first, key, pixel_weight) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B,
   T, H, W, 3], placed as the pretrain stage places them: the state replicated, the batch split. `depth` is the depth
   target (uint16 mm) of a variant that predicts depth (:small), else None; `first` the clips' first segmentation
-  [B, H, W] (random ids) of a conditional SAVi, else None."""
+  [B, H, W] (random ids) of a conditional SAVi, else None; then the pixel weights: None (pretrain.train.mask_weight
+  weights pixels on the host at no measurable cost)."""
   state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
   rng = np.random.default_rng(0)
   video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
@@ -40,7 +41,7 @@ def synthetic_inputs(comp, shape):
   if comp.conditional:
     first = jax.device_put(rng.integers(0, comp.model.num_slots, (shape[0], *shape[2:4]), dtype=np.uint8),
                            comp.dp.batch)
-  return state, video, depth, first, jax.random.key(1)
+  return state, video, depth, first, jax.random.key(1), None
 
 
 class Timed:
