@@ -27,10 +27,9 @@ from typing import Dict, Iterable, Iterator, List, Optional, Sequence
 import numpy as np
 
 from roboshape import envs
-from roboshape.envs import camera
 from roboshape import fileio
 from roboshape.errors import UserError
-from roboshape.sim.spec import EnvSpec, check_seeds
+from roboshape.sim.spec import CAMERA_KEYS, EnvSpec, check_seeds
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -113,7 +112,7 @@ class _Proc:
 def _stack(frames: List[dict]) -> Dict[str, np.ndarray]:
   """The workers' frame dicts stacked into arrays [N, ...] (every camera's frames: image, segmentation, depth where
   the spec asks for it, wrist_image, ...)."""
-  views = {k: np.stack([o[k] for o in frames]) for k in camera.all_keys(camera.CAMERAS) if k in frames[0]}
+  views = {k: np.stack([o[k] for o in frames]) for k in CAMERA_KEYS if k in frames[0]}
   return dict(**views, reached=np.stack([o["reached"] for o in frames]).astype(bool),
               state=np.stack([o["state"] for o in frames]).astype(np.float32),
               success=np.array([o["success"] for o in frames], bool),
