@@ -29,6 +29,7 @@ from typing import Any, Callable, Mapping, Tuple
 
 from roboshape import encoders
 from roboshape import envs
+from roboshape.envs import camera
 from roboshape import ranges
 from roboshape import rundir
 from roboshape.encoders import columns
@@ -176,6 +177,18 @@ def check_single(config, sections: SectionChecks) -> None:
   if kind.check is not None:
     kind.check(config)
   _check_hand_relative(config, kind)
+  _check_views(config, kind)
+
+
+def _check_views(config, kind: encoders.Kind) -> None:
+  """Several env.cameras need an encoder that reads every view with one set of weights (Kind.views), unless it
+  reads no camera's frames at all (the state)."""
+  cameras = tuple(config.env.cameras)
+  if len(cameras) == 1 or kind.views or not any(k in camera.FRAME_KEYS for k in kind.inputs):
+    return
+  raise UserError(f"env.cameras={cameras!r}: the {kind.name} encoder reads the front view alone (its weights are "
+                  "pretrained on the front camera's frames); use env.cameras=('front',) with it, or an encoder "
+                  f"that reads every view ({', '.join(n for n in encoders.names() if encoders.get(n).views)}).")
 
 
 def _check_hand_relative(config, kind: encoders.Kind) -> None:

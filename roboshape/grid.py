@@ -52,7 +52,7 @@ def grid_configs(config, workdir: str):
       sub.pretrain.from_workdir = rundir.grid_run_dir(workdir, task, sub.encoder)
       pretrains = False
     sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
-    sub.data.dir = rundir.grid_data_dir(config, workdir, task)
+    sub.data.dir = rundir.grid_data_dir(config, workdir, task, tuple(sub.env.cameras))
     seeds = config.grid.get("train_seeds", {}).get(task)
     if seeds:
       sub.policy.train_seeds = tuple(seeds)

@@ -320,9 +320,11 @@ def grid_run_dir(workdir: str, task: str, column: str) -> str:
   return os.path.join(workdir, grid_cell(task, column))
 
 
-def grid_data_dir(config, workdir: str, task: str) -> str:
-  """The data.dir of a grid's runs of `task`: the task's datasets, shared by its runs and collected once."""
-  return os.path.join(data_root(config, workdir), task)
+def grid_data_dir(config, workdir: str, task: str, cameras=("front",)) -> str:
+  """The data.dir of a grid's runs of `task` that see `cameras`: the task's datasets, shared by those runs and
+  collected once; <data root>/<task> for the front camera alone, <task>_<other cameras> with more ("pick_wrist")."""
+  others = [c for c in cameras if c != "front"]
+  return os.path.join(data_root(config, workdir), "_".join([task] + others))
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -364,7 +364,7 @@ class DatasetWriter:
       if ("depth" in e) != self.depth:
         raise ValueError(f"episode of seed {e['seed']} {'has' if 'depth' in e else 'lacks'} depth, the dataset "
                          f"{'stores' if self.depth else 'does not store'} it")
-      stored = tuple(c for c in camera.CAMERAS if camera.keys(c)[0] in e)
+      stored = camera.stored(e)
       if stored != self.cameras:
         raise ValueError(f"episode of seed {e['seed']} has the cameras {stored}, the dataset stores {self.cameras}")
       if ("state" in e) != self.has_state:
@@ -479,7 +479,7 @@ def write_dataset(path: str, splits: Mapping[str, Sequence[Mapping[str, Any]]],
   summary.setdefault("level", first["level"])
   summary.setdefault("resolution", int(first["image"].shape[1]))
   summary.setdefault("depth", "depth" in first)
-  summary.setdefault("cameras", [c for c in camera.CAMERAS if camera.keys(c)[0] in first])
+  summary.setdefault("cameras", list(camera.stored(first)))
   summary.setdefault("state", "state" in first)
   writer = DatasetWriter(path, summary, {k: len(v) for k, v in splits.items()})
   for split, episodes in splits.items():

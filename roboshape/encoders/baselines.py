@@ -63,10 +63,10 @@ def _dino(config, workdir: str):
 registry.register(registry.Kind(
     name="r3m", inputs=("image",), pretrain="", build=_r3m, title="R3M",
     description="R3M ResNet from the official weights (one global token)",
-    sections=("baselines.r3m",), check=check_r3m, available=available_r3m, order=1,
+    sections=("baselines.r3m",), check=check_r3m, available=available_r3m, order=1, views=True,
     tokens=lambda config: f"1 x (2048 for {config.baselines.r3m.arch}; 512 for resnet18/34)"))
 registry.register(registry.Kind(
     name="dino", inputs=("image",), pretrain="", build=_dino, title="DINO",
     description="DINO ViT from the official weights (the CLS token, optionally the patch tokens)",
-    sections=("baselines.dino",), check=check_dino, available=available_dino, order=0,
+    sections=("baselines.dino",), check=check_dino, available=available_dino, order=0, views=True,
     tokens=lambda config: "1 + patches (patch_tokens=True)" if config.baselines.dino.patch_tokens else "1 (CLS)"))

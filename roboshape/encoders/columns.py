@@ -44,6 +44,9 @@ OPTIONS = {o.name: o for o in (
            "the robot's own pose as one more token per frame (roboshape/encoders/proprio.py)"),
     Option("rel", (("policy.hand_relative", True),),
            "with proprio: each token's object relative to the hand (roboshape/encoders/proprio.py)"),
+    Option("wrist", (("env.cameras", ("front", "wrist")),),
+           "a second camera on the hand: the encoder reads the front and the wrist views (roboshape/encoders/"
+           "views.py; a dataset collected with both)"),
 )}
 
 
@@ -87,8 +90,13 @@ def of_config(config) -> str:
   """The column `config` (a ConfigDict, or a config.json's dict) is: its encoder, then each option whose fields
   all hold the values the option sets."""
   on = [o.name for o in OPTIONS.values() if (not o.encoders or config["encoder"] in o.encoders)
-        and all(fields_lib.get(config, f, None) == v for f, v in o.fields)]
+        and all(_same(fields_lib.get(config, f, None), v) for f, v in o.fields)]
   return SEPARATOR.join([config["encoder"]] + on)
+
+
+def _same(value, setting) -> bool:
+  """Whether a config's `value` is an option's `setting`; a config.json holds a tuple as a list."""
+  return (tuple(value) if isinstance(value, list) else value) == setting
 
 
 def policy_only(column: str) -> bool:

@@ -144,7 +144,7 @@ def _build(config, workdir: str):
 registry.register(registry.Kind(
     name="objects", inputs=("image", "segmentation"), pretrain="", build=_build, title="Objects",
     description="ground-truth object tokens from the segmentation, one per id (control: the upper bound of SAVi); "
-                "reads depth too with env.depth", family="control", order=4,
+                "reads depth too with env.depth", family="control", order=4, views=True,
     tokens=lambda config: f"{len(token_ids(config.env.max_distractors))} x {DIM}",
     points=lambda config: "" if config.env.depth else (
         "its tokens place objects in 3-D only with depth: set env.depth=True (and collect the dataset with it)")))

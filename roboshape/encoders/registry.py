@@ -82,6 +82,9 @@ class Kind:
       benchmark's projection, benchmarks/gpu_scaleup.py); None: "unknown".
     points: config -> "" when the encoder built for `config` says where each token's object is
       (FrozenEncoder.points, which policy.hand_relative needs), else why not; None: its tokens never do.
+    views: its weights read any camera's frames alike, so with several env.cameras one encoder encodes each view
+      (roboshape/encoders/views.py): the `objects` control and fixed-weight encoders; False for an encoder
+      pretrained on the front camera's frames alone, which config_check then refuses with several cameras.
   """
   name: str
   inputs: Tuple[str, ...]
@@ -100,6 +103,7 @@ class Kind:
   order: int = 100
   tokens: Optional[Callable] = None
   points: Optional[Callable] = None
+  views: bool = False
 
   def __post_init__(self):
     unknown = [k for k in self.inputs if k not in OBSERVATION_KEYS]
@@ -156,10 +160,12 @@ def tokens_per_frame(config, name: str) -> str:
 
 
 def build_encoder(config, workdir: str):
-  """The `FrozenEncoder` of `config.encoder`, built by its registered `build`; with `config.policy.proprio`, its
-  tokens followed by a proprioception token per frame, and with `config.policy.hand_relative` each token's object
-  relative to the hand (roboshape/encoders/proprio.py)."""
-  encoder = get(config.encoder).build(config, workdir)
+  """The `FrozenEncoder` of `config.encoder`, built by its registered `build`; with several `config.env.cameras`,
+  run on each view (roboshape/encoders/views.py); with `config.policy.proprio`, its tokens followed by a
+  proprioception token per frame, and with `config.policy.hand_relative` each token's object relative to the hand
+  (roboshape/encoders/proprio.py)."""
+  from roboshape.encoders import views  # pylint: disable=import-outside-toplevel
+  encoder = views.with_views(get(config.encoder).build(config, workdir), config.env.cameras)
   if config.policy.proprio:
     from roboshape.encoders import proprio  # pylint: disable=import-outside-toplevel
     encoder = proprio.with_proprio(encoder, hand_relative=bool(config.policy.hand_relative))

@@ -75,6 +75,12 @@ def all_keys(cameras: Sequence[str]) -> Tuple[str, ...]:
   return tuple(key for c in cameras for key in keys(c))
 
 
+def stored(observation: Sequence[str]) -> Tuple[str, ...]:
+  """The cameras whose image is among the keys of `observation` (an episode or observation dict, or its keys), in
+  CAMERAS' order."""
+  return tuple(c for c in CAMERAS if keys(c)[0] in observation)
+
+
 def check(cameras: Sequence[str]) -> Tuple[str, ...]:
   """`cameras` as a tuple; ValueError, saying what to do, unless they are distinct names of CAMERAS with the front
   one among them (the encoders read the front view)."""
