@@ -483,6 +483,42 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   assert depth[seg == 3].max() < depth[seg == 1].max() and 100 < depth.min() and depth.max() < 5000
 
 
+def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, sim_pool, tmp_path):
+  """configs/reproduce.py:tiny with the column objects+wrist: collect (the dataset the collect stage wrote above,
+  found complete in the grid's push_wrist folder), cache, train_policy, evaluate (in the real worker, which renders
+  both cameras) and report. No pretrain stage: the objects control has none, and no pretrained encoder reads the
+  wrist view yet."""
+  import roboshape.sim  # pylint: disable=import-outside-toplevel
+  from configs import reproduce  # pylint: disable=import-outside-toplevel
+  from conftest import cheap_compiles  # pylint: disable=import-outside-toplevel
+  from roboshape import rundir, stages  # pylint: disable=import-outside-toplevel
+  config = reproduce.get_config("tiny")
+  config.grid.tasks, config.grid.encoders = ("push",), ("objects+wrist",)
+  config.data.train_episodes, config.env.resolution, config.env.depth = 2, 32, True    # the real dataset's
+  config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 0
+  workdir = str(tmp_path / "grid")
+  data = rundir.grid_data_dir(config, workdir, "push", ("front", "wrist"))
+  assert data.endswith("push_wrist")
+  shutil.copytree(os.path.dirname(real_dataset), os.path.join(data, os.path.basename(os.path.dirname(real_dataset))))
+  specs = []
+
+  def borrowed_pool(spec, num_workers):
+    specs.append(spec.cameras)
+    return _Borrowed(sim_pool)
+
+  with pytest.MonkeyPatch.context() as mp, cheap_compiles():
+    mp.setattr(roboshape.sim, "SimPool", borrowed_pool)
+    stages.run(config, workdir)
+  assert specs and set(specs) == {("front", "wrist")}
+  run = rundir.grid_run_dir(workdir, "push", "objects+wrist")
+  with open(os.path.join(run, "config.json")) as f:
+    assert json.load(f)["env"]["cameras"] == ["front", "wrist"]
+  with open(os.path.join(rundir.eval_dir(run), rundir.RESULTS_FILE)) as f:
+    assert json.load(f)
+  report = open(os.path.join(workdir, "report", "report.md")).read()
+  assert "Objects+wrist" in report and "`+wrist`: a second camera on the hand" in report
+
+
 def test_a_tfds_dataset_roboshape_did_not_write_is_refused_and_left_as_it_is(reference, tmp_path):
   config, path, _ = reference
   foreign = str(tmp_path / "data" / "roboshape_push" / "1.0.0")
