@@ -495,7 +495,7 @@ def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, s
   config = reproduce.get_config("tiny")
   config.grid.tasks, config.grid.encoders = ("push",), ("objects+wrist",)
   config.data.train_episodes, config.env.resolution, config.env.depth = 2, 32, True    # the real dataset's
-  config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 0
+  config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 1
   workdir = str(tmp_path / "grid")
   data = rundir.grid_data_dir(config, workdir, "push", ("front", "wrist"))
   assert data.endswith("push_wrist")
@@ -515,6 +515,10 @@ def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, s
     assert json.load(f)["env"]["cameras"] == ["front", "wrist"]
   with open(os.path.join(rundir.eval_dir(run), rundir.RESULTS_FILE)) as f:
     assert json.load(f)
+  import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
+  (gif,) = [n for n in os.listdir(rundir.videos_dir(run)) if n.endswith(".gif")]
+  frame = imageio.mimread(os.path.join(rundir.videos_dir(run), gif))[0]
+  assert frame.shape[:2] == (4 * 32, 4 * (32 + 2 + 32) + 8)     # both views side by side, x4, padded to 16s
   report = open(os.path.join(workdir, "report", "report.md")).read()
   assert "Objects+wrist" in report and "`+wrist`: a second camera on the hand" in report
 

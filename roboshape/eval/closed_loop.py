@@ -54,6 +54,7 @@ from roboshape import progress
 from roboshape import ranges
 from roboshape import rundir
 from roboshape.encoders import columns
+from roboshape.envs import camera as camera_lib
 from roboshape.envs import state as state_lib
 from roboshape.envs.palettes import LEVEL_NAMES
 from roboshape.errors import UserError
@@ -121,7 +122,8 @@ def rollout_plan(levels: Sequence[str], num_seeds: int, rollouts_per_seed: int,
           for level in levels for s in range(num_seeds) for r in range(rollouts_per_seed)]
 
 
-# on_done(rollout, result dict(success, length, ended), frames uint8 [T+1, H, W, 3] or None)
+# on_done(rollout, result dict(success, length, ended), frames uint8 [T+1, H, W, 3] or None; with several cameras
+# their views side by side, _views)
 OnDone = Callable[[Rollout, Dict, Optional[np.ndarray]], None]
 
 
@@ -199,7 +201,7 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
   out = pool.reset([r.seed for r in wave], render=[camera or r in record for r in wave])
   names = tuple(getattr(pool, "milestones", ()))
   policy.reset_slots(list(range(n)), seeds=[r.seed for r in wave] + list(range(k, n)))  # padding: its index
-  frames = {i: [out["image"][i]] for i, r in enumerate(wave) if r in record}
+  frames = {i: [_views(out, i)] for i, r in enumerate(wave) if r in record}
   active = np.ones(k, bool)
   closest = _cube_distance(out, k)
   moves = []
@@ -213,7 +215,7 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
       closest = np.where(active, np.minimum(closest, _cube_distance(out, k)), closest)
     for i in np.flatnonzero(active):
       if i in frames:
-        frames[i].append(out["image"][i])
+        frames[i].append(_views(out, i))
       if bool(out["done"][i]):
         active[i] = False
         success = bool(out["success"][i])
@@ -225,6 +227,13 @@ def _run_wave(pool, policy, wave: List[Rollout], n: int, record: set, finished: 
           result["closest_cube_cm"] = round(100.0 * float(closest[i]), 2)
         result["first_move"] = round(float(np.mean([m[i] for m in moves])), 4)
         finish(wave[i], result, np.stack(frames[i]) if i in frames else None)
+
+
+def _views(out: Dict, i: int) -> np.ndarray:
+  """The frame a video of env i shows: every camera's image in `out` side by side, the front one first (the front
+  image alone with one camera)."""
+  images = [out[camera_lib.keys(c)[0]][i] for c in camera_lib.stored(out)]
+  return images[0] if len(images) == 1 else videos.side_by_side([image[None] for image in images])[0]
 
 
 def _cube_distance(out: Dict, k: int) -> Optional[np.ndarray]:
