@@ -5,6 +5,7 @@ import importlib
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from configs import common
 from roboshape import encoders
@@ -12,6 +13,7 @@ from roboshape.encoders import objects
 from roboshape.models import policy as policy_lib
 
 K, D = objects.NUM_IDS, objects.DIM
+pytestmark = pytest.mark.usefixtures("cheap_xla_module")
 
 
 def _frame():
@@ -120,7 +122,7 @@ def test_all_zero_tokens_are_masked_out_of_the_trunk():
   image, seg, depth = _random_frames(rng, batch=b * t)
   tokens = jnp.asarray(objects.tokens(image, seg, depth)).reshape(b, t, K, D)
   frames = jnp.broadcast_to(jnp.arange(t), (b, t))
-  params = net.init(jax.random.PRNGKey(0), tokens, frames)
+  params = jax.jit(net.init)(jax.random.PRNGKey(0), tokens, frames)
   apply = jax.jit(lambda x: net.apply(params, x, frames))
 
   def padded(extra):

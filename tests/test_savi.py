@@ -194,8 +194,9 @@ def test_a_full_grid_gives_slot_attention_a_pixel_each_and_keeps_the_decoder():
   config.savi.pool, config.savi.full_grid = 2, 4
   video = jnp.asarray(np.random.default_rng(0).random((1, 2, 16, 16, 3)), jnp.float32)
   model = savi.model_from_config(config)
-  variables = model.init({"params": jax.random.key(0), "slots": jax.random.key(1)}, video)
-  out, inter = model.apply(variables, video, rngs={"slots": jax.random.key(2)}, mutable=["intermediates"])
+  variables = jax.jit(model.init)({"params": jax.random.key(0), "slots": jax.random.key(1)}, video)
+  out, inter = jax.jit(lambda v, x: model.apply(v, x, rngs={"slots": jax.random.key(2)}, mutable=["intermediates"]))(
+      variables, video)
   attention = inter["intermediates"]["processor"]["corrector"]["attention"][-1]
   assert attention.shape[-1] == 16 * 16                      # one input per pixel of the 16x16 frame
   assert out["masks"].shape[-2:] == (8, 8)                   # the decoder still draws the pooled frame

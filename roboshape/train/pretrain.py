@@ -228,11 +228,14 @@ class Compiled:
                                  out_shardings=(self.dp.replicated, self.dp.replicated))
 
   def init_state(self, key: jax.Array, video_shape: Sequence[int]) -> Dict[str, Any]:
-    """The step-0 train state {step, params, opt_state} for clips of shape [B, L, H, W, 3]."""
-    params_key, slots_key = jax.random.split(key)
-    dummy = jnp.zeros((1, *video_shape[1:]), jnp.float32)
-    params = self.model.init({"params": params_key, "slots": slots_key}, dummy)["params"]
-    return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
+    """The step-0 train state {step, params, opt_state} for clips of shape [B, L, H, W, 3], built by one compiled
+    call (run op by op, the model's initialisation compiles each of its hundreds of small operations apart)."""
+    def build(key):
+      params_key, slots_key = jax.random.split(key)
+      dummy = jnp.zeros((1, *video_shape[1:]), jnp.float32)
+      params = self.model.init({"params": params_key, "slots": slots_key}, dummy)["params"]
+      return {"step": jnp.zeros((), jnp.int32), "params": params, "opt_state": self.optimizer.init(params)}
+    return jax.jit(build)(key)
 
   def _train_step(self, state, video, depth, first_segmentation, key, pixel_weight=None):
     """(state, video uint8 [B, L, H, W, 3], depth uint16 [B, L, H, W] mm or None, the clips' first segmentation
