@@ -12,6 +12,7 @@ each step's metrics before anything is logged or saved, and `finite` the paramet
 config fields to change. The stage is not marked done (roboshape/rundir.py's stage log records an attempt that
 raised as unfinished), so nothing downstream takes its output for finished.
 """
+import functools
 from typing import Any, Mapping
 
 import numpy as np
@@ -62,9 +63,17 @@ def _stop(found: str, step: int, ckpt, stage: str, fields: Mapping[str, Any], de
 
 
 def finite(tree) -> bool:
-  """Whether every leaf of a pytree of arrays (a train state's params) is finite: what a checkpoint must be."""
+  """Whether every leaf of a pytree of arrays (a train state's params) is finite: what a checkpoint must be. One
+  compiled call for the whole tree (op by op, each leaf's shape would compile two small programs of its own)."""
   import jax  # pylint: disable=import-outside-toplevel
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.asarray(x).dtype,
-                                                                                        jnp.inexact)]
-  return bool(jnp.all(jnp.stack(leaves))) if leaves else True
+  leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.inexact)]
+  return bool(_all_finite()(leaves)) if leaves else True
+
+
+@functools.lru_cache(maxsize=None)
+def _all_finite():
+  """The jitted check of `finite`: a list of arrays -> whether all their entries are finite."""
+  import jax  # pylint: disable=import-outside-toplevel
+  import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
+  return jax.jit(lambda leaves: jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])))
