@@ -186,9 +186,9 @@ def _check_views(config, kind: encoders.Kind) -> None:
   cameras = tuple(config.env.cameras)
   if len(cameras) == 1 or kind.views or not any(k in camera.FRAME_KEYS for k in kind.inputs):
     return
-  raise UserError(f"env.cameras={cameras!r}: the {kind.name} encoder reads the front view alone (its weights are "
-                  "pretrained on the front camera's frames); use env.cameras=('front',) with it, or an encoder "
-                  f"that reads every view ({', '.join(n for n in encoders.names() if encoders.get(n).views)}).")
+  raise UserError(f"env.cameras={cameras!r}: the {kind.name} encoder reads the front view alone; use "
+                  "env.cameras=('front',) with it, or an encoder that reads every view "
+                  f"({', '.join(n for n in encoders.names() if encoders.get(n).views)}).")
 
 
 def _check_hand_relative(config, kind: encoders.Kind) -> None:

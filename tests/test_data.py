@@ -346,6 +346,17 @@ def test_a_wrist_camera_round_trips_validates_and_browses(tmp_path, synthetic_da
   assert collect.config_differences(old, dict(old, cameras=collect.config_summary(front)["cameras"])) == []
   assert collect.config_differences(old, dict(old, cameras=collect.config_summary(both)["cameras"])) == [
       "cameras: ['front'] in the dataset, ['front', 'wrist'] in the config"]
+  # Pretraining clips of both views: each clip is the frames of one episode's front or wrist view, both views occur.
+  batch = next(reader.clip_batches(path, "train", clip_length=3, batch_size=16, seed=0, cameras=("front", "wrist")))
+  seen = set()
+  for video, seg, seed, start in zip(batch["video"], batch["segmentation"], batch["episode_seed"], batch["start"]):
+    e = with_wrist(int(seed))
+    for view, (image, segmentation) in {"front": ("image", "segmentation"),
+                                        "wrist": ("wrist_image", "wrist_segmentation")}.items():
+      if np.array_equal(video, e[image][start:start + 3]):
+        np.testing.assert_array_equal(seg, e[segmentation][start:start + 3])
+        seen.add(view)
+  assert seen == {"front", "wrist"}
 
 
 def test_browse_writes_an_animation_and_a_strip(synthetic_dataset, tmp_path):
@@ -484,16 +495,15 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
 
 
 def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, sim_pool, tmp_path):
-  """configs/reproduce.py:tiny with the column objects+wrist: collect (the dataset the collect stage wrote above,
-  found complete in the grid's push_wrist folder), cache, train_policy, evaluate (in the real worker, which renders
-  both cameras) and report. No pretrain stage: the objects control has none, and no pretrained encoder reads the
-  wrist view yet."""
+  """configs/reproduce.py:tiny with the column savi+wrist: collect (the dataset the collect stage wrote above, found
+  complete in the grid's push_wrist folder), pretrain (one SAVi on clips of both views), cache, train_policy,
+  evaluate (in the real worker, which renders both cameras) and report."""
   import roboshape.sim  # pylint: disable=import-outside-toplevel
   from configs import reproduce  # pylint: disable=import-outside-toplevel
   from conftest import cheap_compiles  # pylint: disable=import-outside-toplevel
   from roboshape import rundir, stages  # pylint: disable=import-outside-toplevel
   config = reproduce.get_config("tiny")
-  config.grid.tasks, config.grid.encoders = ("push",), ("objects+wrist",)
+  config.grid.tasks, config.grid.encoders = ("push",), ("savi+wrist",)
   config.data.train_episodes, config.env.resolution, config.env.depth = 2, 32, True    # the real dataset's
   config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 1
   workdir = str(tmp_path / "grid")
@@ -510,17 +520,20 @@ def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, s
     mp.setattr(roboshape.sim, "SimPool", borrowed_pool)
     stages.run(config, workdir)
   assert specs and set(specs) == {("front", "wrist")}
-  run = rundir.grid_run_dir(workdir, "push", "objects+wrist")
+  run = rundir.grid_run_dir(workdir, "push", "savi+wrist")
   with open(os.path.join(run, "config.json")) as f:
     assert json.load(f)["env"]["cameras"] == ["front", "wrist"]
   with open(os.path.join(rundir.eval_dir(run), rundir.RESULTS_FILE)) as f:
     assert json.load(f)
+  (features,) = os.listdir(os.path.join(run, "features"))
+  with open(os.path.join(run, "features", features, "manifest.json")) as f:
+    assert json.load(f)["num_tokens"] == 2 * config.savi.num_slots       # each view's slots
   import imageio.v2 as imageio  # pylint: disable=import-outside-toplevel
   (gif,) = [n for n in os.listdir(rundir.videos_dir(run)) if n.endswith(".gif")]
   frame = imageio.mimread(os.path.join(rundir.videos_dir(run), gif))[0]
   assert frame.shape[:2] == (4 * 32, 4 * (32 + 2 + 32) + 8)     # both views side by side, x4, padded to 16s
   report = open(os.path.join(workdir, "report", "report.md")).read()
-  assert "Objects+wrist" in report and "`+wrist`: a second camera on the hand" in report
+  assert "SAVi+wrist" in report and "`+wrist`: a second camera on the hand" in report
 
 
 def test_a_tfds_dataset_roboshape_did_not_write_is_refused_and_left_as_it_is(reference, tmp_path):

@@ -1,5 +1,6 @@
 """Several cameras (roboshape/encoders/views.py): one encoder run on each view, the views' tokens joined with a view
 one-hot; the `wrist` column; configs refused for an encoder that reads the front view alone."""
+import dataclasses
 import importlib
 
 import numpy as np
@@ -10,7 +11,9 @@ from roboshape import rundir
 from roboshape import stages
 from roboshape.encoders import columns
 from roboshape.encoders import objects
+from roboshape.encoders import registry
 from roboshape.encoders import views
+from roboshape.envs import camera
 from roboshape.errors import UserError
 from roboshape.models import encoder as encoder_lib
 
@@ -106,10 +109,19 @@ def test_the_wrist_column_reads_back_from_a_saved_config_and_has_its_own_grid_da
   assert rundir.grid_data_dir(config, "/w", "pick", ("front", "wrist")) == "/w/data/pick_wrist"
 
 
-def test_an_encoder_pretrained_on_the_front_view_alone_is_refused_with_several_cameras():
+def test_an_encoder_that_reads_the_front_view_alone_is_refused_with_several_cameras(monkeypatch):
   stages.check(_config())
   stages.check(_config("state+wrist"))      # reads no frames: the cameras change nothing
   savi = importlib.import_module("configs.pick_savi").get_config("tiny")
-  savi.env.cameras = ("front", "wrist")
+  columns.apply(savi, "savi+wrist")
+  stages.check(savi)                        # pretrained on every view's clips
+  monkeypatch.setitem(registry._REGISTRY, "savi", dataclasses.replace(encoders.get("savi"), views=False))
   with pytest.raises(UserError, match=r"env.cameras=.*the savi encoder reads the front view alone"):
     stages.check(savi)
+
+
+def test_a_view_is_the_episode_under_the_front_cameras_names():
+  episode = dict(image=1, segmentation=2, depth=3, wrist_image=4, wrist_segmentation=5, wrist_depth=6, seed=7)
+  assert camera.view(episode, "wrist") == dict(image=4, segmentation=5, depth=6, seed=7)
+  assert camera.view(episode, "front") == dict(image=1, segmentation=2, depth=3, seed=7)
+  assert camera.view(dict(image=1, wrist_image=4), "wrist") == dict(image=4)

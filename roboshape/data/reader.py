@@ -17,6 +17,7 @@ import tensorflow as tf
 import tensorflow_datasets as tfds
 
 from roboshape import data as data_lib
+from roboshape.envs import camera
 from roboshape.errors import UserError
 
 _MAX_STEPS = 1 << 20
@@ -182,16 +183,18 @@ class _ClipTable:
 
 
 def clip_batches(path: str, split: str, clip_length: int, batch_size: int, seed: int = 0,
-                 start_batch: int = 0) -> Iterator[Dict[str, np.ndarray]]:
-  """Endless batches of random clips (uniform over all clips of `clip_length` consecutive frames).
+                 start_batch: int = 0, cameras: Sequence[str] = ("front",)) -> Iterator[Dict[str, np.ndarray]]:
+  """Endless batches of random clips (uniform over all clips of `clip_length` consecutive frames, of every camera
+  of `cameras`: each view of an episode is one more source of clips, under the front camera's names).
 
-  Batch b depends only on (path, split, clip_length, batch_size, seed, b): `start_batch=b` resumes the sequence.
+  Batch b depends only on (path, split, clip_length, batch_size, seed, cameras, b): `start_batch=b` resumes the
+  sequence.
   Yields video uint8 [B, L, H, W, 3], segmentation uint8 [B, L, H, W], episode_seed int64 [B], start int64 [B]
   (the clip's first step within its episode), and depth uint16 [B, L, H, W] (millimetres) in a dataset with depth.
   """
   if clip_length < 1 or batch_size < 1:
     raise UserError(f"clip_length ({clip_length}) and batch_size ({batch_size}) must be >= 1.")
-  episodes = list(read_episodes(path, split))
+  episodes = [camera.view(e, c) for e in read_episodes(path, split) for c in cameras]
   if not episodes:
     raise UserError(f"split {split!r} of {path} has no episodes.")
   table = _ClipTable(episodes, clip_length)

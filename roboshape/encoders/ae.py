@@ -63,4 +63,4 @@ registry.register(registry.Kind(
     evaluator="reconstruction",
     model=registry.PretrainModel(build=_model, selection=registry.Selection("recon_mse", False,
                                                                              "reconstruction MSE")),
-    sections=("pretrain", "ae", "savi.slot_size"), check=check, order=2, tokens=_tokens))
+    sections=("pretrain", "ae", "savi.slot_size"), check=check, order=2, tokens=_tokens, views=True))

@@ -82,9 +82,10 @@ class Kind:
       benchmark's projection, benchmarks/gpu_scaleup.py); None: "unknown".
     points: config -> "" when the encoder built for `config` says where each token's object is
       (FrozenEncoder.points, which policy.hand_relative needs), else why not; None: its tokens never do.
-    views: its weights read any camera's frames alike, so with several env.cameras one encoder encodes each view
-      (roboshape/encoders/views.py): the `objects` control and fixed-weight encoders; False for an encoder
-      pretrained on the front camera's frames alone, which config_check then refuses with several cameras.
+    views: with several env.cameras one encoder encodes each view (roboshape/encoders/views.py): its weights read
+      any camera's frames (the `objects` control, fixed-weight encoders), or its pretraining learns every view of
+      env.cameras (SAVi and the AE: roboshape/train/pretrain.py's clips come from every view). False: it reads the
+      front camera alone, and config_check refuses it with several cameras.
   """
   name: str
   inputs: Tuple[str, ...]

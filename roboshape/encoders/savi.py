@@ -260,6 +260,7 @@ registry.register(registry.Kind(
     evaluator="slots",
     model=registry.PretrainModel(build=_model, selection=registry.Selection("fg_ari", True, "FG-ARI")),
     sections=("pretrain", "savi"), check=check, baseline=False, slot_videos=True, family="object-centric", order=3,
+    views=True,
     tokens=lambda config: f"{config.savi.num_slots} x {config.savi.slot_size}",
     points=lambda config: "" if config.env.depth else (
         "its slots are placed in 3-D only with the camera's depth: set env.depth=True (and collect the dataset "

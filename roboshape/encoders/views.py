@@ -30,8 +30,9 @@ def _view_keys(view: str, inputs):
 
 
 def _renamed(view: str, inputs, obs):
-  """The observation `obs` with `view`'s frames under the front camera's names, for a step reading `inputs`."""
-  return {k: obs[n] for k, n in zip(inputs, _view_keys(view, inputs))}
+  """The observation `obs` as `view` sees it, the keys `inputs` alone."""
+  seen = camera.view(obs, view)
+  return {k: seen[k] for k in inputs}
 
 
 def _step(base_step, base_inputs, cameras, params, carry, obs):

@@ -75,6 +75,15 @@ def all_keys(cameras: Sequence[str]) -> Tuple[str, ...]:
   return tuple(key for c in cameras for key in keys(c))
 
 
+def view(observation, camera: str) -> dict:
+  """`observation` (an episode or observation dict) as `camera` sees it: that camera's frames under the front
+  camera's names ("wrist_image" as "image", ...), every other camera's frames left out, the other keys as they are."""
+  frames = set(all_keys(CAMERAS))
+  out = {k: v for k, v in observation.items() if k not in frames}
+  out.update({front: observation[own] for front, own in zip(FRAME_KEYS, keys(camera)) if own in observation})
+  return out
+
+
 def stored(observation: Sequence[str]) -> Tuple[str, ...]:
   """The cameras whose image is among the keys of `observation` (an episode or observation dict, or its keys), in
   CAMERAS' order."""

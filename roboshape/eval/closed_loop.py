@@ -270,9 +270,10 @@ def policy_fingerprint(workdir: str, train_seed=None, control=None) -> str:
 
 
 def _slot_video_fn(config, workdir):
-  """The SAVi slot-decomposition video maker (frames -> frames), for encoders registered with slot videos only."""
+  """The SAVi slot-decomposition video maker (frames -> frames), for encoders registered with slot videos only, and
+  with one camera (a recorded frame of several holds every view side by side, _views)."""
   from roboshape import encoders  # pylint: disable=import-outside-toplevel
-  if not encoders.get(config.encoder).slot_videos:
+  if not encoders.get(config.encoder).slot_videos or len(config.env.cameras) > 1:
     return None
   return videos.SaviSlotVideo(workdir)
 

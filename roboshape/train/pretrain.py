@@ -428,19 +428,24 @@ def _abstract_state(comp: Compiled, config):
 def data_source(config, workdir: str):
   """(batches_from, val_episodes) of the run's dataset (roboshape.data) for `fit`: clips of config.pretrain.train's
   shape from the train split (batch i always the same), and the first config.pretrain.eval.episodes val
-  episodes."""
+  episodes. With several env.cameras one model learns every view: the clips come from every camera's frames, and
+  each of those val episodes is validated in every view (roboshape/envs/camera.py `view`)."""
   # pylint: disable=import-outside-toplevel
   from roboshape import data as rdata
   from roboshape.data import reader
+  from roboshape.envs import camera
 
   path = rdata.dataset_path(config, workdir)
   reader.load_state(path)  # a missing dataset is a UserError that says how to make one
   tc = config.pretrain.train
+  cameras = tuple(config.env.cameras)
 
   def batches_from(start: int):
-    return reader.clip_batches(path, "train", tc.clip_length, tc.batch_size, seed=config.seed, start_batch=start)
+    return reader.clip_batches(path, "train", tc.clip_length, tc.batch_size, seed=config.seed, start_batch=start,
+                               cameras=cameras)
 
-  return batches_from, list(itertools.islice(reader.read_episodes(path, "val"), config.pretrain.eval.episodes))
+  val = itertools.islice(reader.read_episodes(path, "val"), config.pretrain.eval.episodes)
+  return batches_from, [camera.view(e, c) for e in val for c in cameras]
 
 
 # ----------------------------------------------------------------------------------------------------------------
