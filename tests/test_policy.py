@@ -260,6 +260,7 @@ def test_a_run_trained_with_action_chunks_is_refused_in_one_line_and_one_without
 _TWO_DEVICES = r'''
 import sys
 import jax, numpy as np
+jax.config.update("jax_disable_most_optimizations", True)     # compile-bound: XLA's cheap optimisation level
 from configs import common
 from roboshape.models import policy as policy_lib
 from roboshape.train import bc, sharding

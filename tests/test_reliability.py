@@ -16,6 +16,8 @@ from roboshape.data import collect
 from roboshape.data import reader
 from roboshape.data import rlds
 
+pytestmark = pytest.mark.usefixtures("cheap_xla_module")     # compile-bound: XLA's cheap optimisation level
+
 
 # ------------------------------------------------------------------------------------------------ dataset shards
 
