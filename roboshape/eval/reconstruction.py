@@ -39,10 +39,11 @@ def evaluate(model, params, episodes: Sequence[Dict[str, np.ndarray]], frames: i
 
 
 def validation(config, root: str, model, episodes: Sequence[Dict[str, np.ndarray]]) -> pretrain.Validation:
-  """The AE's validation during pretraining: `evaluate` on the first pretrain.eval.episodes of `episodes`."""
+  """The AE's validation during pretraining: `evaluate` on the first pretrain.eval.episodes of `episodes` (each in
+  every view of env.cameras, roboshape/train/pretrain.py data_source)."""
   del root
   ec = config.pretrain.eval
   return pretrain.Validation(
-      run=lambda params, step: evaluate(model, params, episodes[:ec.episodes], ec.frames),
+      run=lambda params, step: evaluate(model, params, episodes[:ec.episodes * len(config.env.cameras)], ec.frames),
       keys=("recon_mse",),
       describe=lambda r: " ".join(f"val {k.replace('_', ' ')} {v:.5f}" for k, v in r.items()))

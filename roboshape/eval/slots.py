@@ -8,7 +8,7 @@ decomposition figure (roboshape/eval/decomposition.py has the metrics).
 """
 import functools
 import os
-from typing import Callable, Dict, Optional, Sequence
+from typing import Callable, Dict, Optional, Sequence, Union
 
 import jax
 import numpy as np
@@ -27,8 +27,9 @@ Decompose = Callable[[object, np.ndarray, np.ndarray], Dict[str, np.ndarray]]
 
 
 def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarray]], frames: int,
-             background_ids: Sequence[int] = (0, 1), pool: int = 1, figure_path: Optional[str] = None,
-             figure_frames: int = 4, title: str = "") -> Dict[str, float]:
+             background_ids: Sequence[int] = (0, 1), pool: int = 1,
+             figure_path: Union[str, Sequence[str], None] = None, figure_frames: int = 4,
+             title: str = "") -> Dict[str, float]:
   """FG-ARI and matched mIoU of the slot masks on whole (first `frames` frames of) episodes, the segmentation ids
   `background_ids` left out.
 
@@ -42,8 +43,10 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
   repeated pool x pool; the reconstruction error is against the pooled frames.
 
   episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W]. Writes the decomposition figure
-  of the first episode's first `figure_frames` frames to `figure_path` when given.
+  of the first episode's first `figure_frames` frames to `figure_path` when given (a sequence of paths: the figure
+  of the i-th episode to the i-th path, e.g. each camera's view of one episode).
   """
+  paths = [figure_path] if isinstance(figure_path, str) else list(figure_path or ())
   aris, frame_aris, ious, mses = [], [], [], []
   best = {name: [] for name in OBJECTS}
   for i, episode in enumerate(episodes):
@@ -58,10 +61,10 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
     ious.append(decomposition.matched_miou(seg, masks, background_ids))
     pooled = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, pool))
     mses.append(float(np.mean((out["recon"][0] - pooled) ** 2)))
-    if i == 0 and figure_path:
+    if i < len(paths):
       n = figure_frames
       decomposition.decomposition_figure(pooled[:n], out["recon"][0, :n], out["rgb"][0, :n], out["masks"][0, :n],
-                                         figure_path, _with_cube(title, best["cube"][0][:n]))
+                                         paths[i], _with_cube(title, best["cube"][i][:n]))
   best = {name: np.concatenate(v) if v else np.zeros(0) for name, v in best.items()}
   seen = {name: v[~np.isnan(v)] for name, v in best.items()}
   with np.errstate(all="ignore"):
@@ -85,15 +88,20 @@ def _with_cube(title: str, cube_iou: np.ndarray) -> str:
 def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str, np.ndarray]]) -> pretrain.Validation:
   """SAVi's validation during pretraining: `evaluate` on the first pretrain.eval.episodes of `episodes` (their
   first pretrain.eval.frames frames), scored and drawn as config.savi.eval says, with the decomposition figure of
-  each evaluation in <root>/figures/step_<step>.png."""
+  each evaluation in <root>/figures/step_<step>.png. With several env.cameras `episodes` holds each episode in
+  every view, one after the other (roboshape/train/pretrain.py data_source): all of them are scored, and the first
+  episode's other views are drawn in step_<step>_<camera>.png."""
   ec, own = config.pretrain.eval, config.savi.eval
   decompose = functools.partial(savi.decompose, model)
+  cameras = tuple(config.env.cameras)
 
   def figure(step):
-    return os.path.join(root, rundir.FIGURES_DIR, f"step_{step:07d}.png")
+    return [os.path.join(root, rundir.FIGURES_DIR, f"step_{step:07d}" + (f"_{c}" if v else "") + ".png")
+            for v, c in enumerate(cameras)]
 
   return pretrain.Validation(
-      run=lambda params, step: evaluate(decompose, params, episodes[:ec.episodes], ec.frames, own.background_ids,
+      run=lambda params, step: evaluate(decompose, params, episodes[:ec.episodes * len(cameras)], ec.frames,
+                                        own.background_ids,
                                         model.input_pool, figure(step),
                                         own.figure_frames, f"{config.name} step {step}"),
       keys=("fg_ari", "fg_ari_frames", "miou", "cube_iou", "cube_found"), ylim=(None, 1.0),

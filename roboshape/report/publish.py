@@ -76,8 +76,9 @@ def planned(config, workdir: str) -> List[tuple]:
     kept, prefix = rundir.seed_dir(encoder_dir, selection["selected_seed"]), f"{config.encoder}_selected_"
     pairs += [(os.path.join(kept, f"val_metrics{ext}"), f"{prefix}val_metrics{ext}") for ext in (".json", ".png")]
   figures = sorted(glob.glob(os.path.join(kept, rundir.FIGURES_DIR, "*.png")))
-  if figures:
-    pairs.append((figures[-1], prefix + os.path.basename(figures[-1])))
+  if figures:   # the last validation's figures: step_<n>.png and, with several cameras, step_<n>_<camera>.png
+    step = lambda path: os.path.basename(path).split(".")[0].split("_")[1]
+    pairs += [(f, prefix + os.path.basename(f)) for f in figures if step(f) == step(figures[-1])]
   for path in sorted(glob.glob(os.path.join(rundir.videos_dir(workdir), "*.mp4"))):
     pairs.append((path, os.path.join("videos", os.path.basename(path))))
   return [(src, name) for src, name in pairs if os.path.isfile(src)]
