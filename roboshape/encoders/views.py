@@ -8,8 +8,8 @@ its view, so the trunk's shared token projection adds a learned embedding per vi
 tokens no order, so this is how it tells the views apart); an all-zero token (the `objects` encoder's absent
 object) stays all zero, so the trunk still masks it out.
 
-One encoder serves every view: the registration says whether its weights may (Kind.views): the `objects` control
-and fixed-weight encoders read any view alike; an encoder pretrained on the front camera's frames alone does not.
+One encoder serves every view: the registration says whether it may (Kind.views): the `objects` control and
+fixed-weight encoders read any view alike, and SAVi and the AE are pretrained on clips of every view of env.cameras.
 
 Where a token's object is (FrozenEncoder.points, for policy.hand_relative) comes from the front view's calibration:
 the front view's tokens keep their points, another view's tokens have none (the wrist view itself moves with the
