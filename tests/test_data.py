@@ -346,6 +346,15 @@ def test_a_wrist_camera_round_trips_validates_and_browses(tmp_path, synthetic_da
   assert collect.config_differences(old, dict(old, cameras=collect.config_summary(front)["cameras"])) == []
   assert collect.config_differences(old, dict(old, cameras=collect.config_summary(both)["cameras"])) == [
       "cameras: ['front'] in the dataset, ['front', 'wrist'] in the config"]
+  # The complete two-camera dataset serves a front-only config (the same episodes' front frames); a config that
+  # differs in anything else, or names a camera the dataset lacks, is still refused.
+  stored = _state(path)["config"]
+  assert collect.check_compatible(path, dict(stored, cameras=["front"]))["complete"]
+  for other in (dict(stored, cameras=["front"], resolution=stored["resolution"] * 2),
+                dict(stored, cameras=["front", "top"])):
+    with pytest.raises(UserError, match="another config"):
+      collect.check_compatible(path, other)
+  assert not collect.serves_fewer_cameras(old, dict(old, cameras=["front", "wrist"]))
   # Pretraining clips of both views: each clip is the frames of one episode's front or wrist view, both views occur.
   batch = next(reader.clip_batches(path, "train", clip_length=3, batch_size=16, seed=0, cameras=("front", "wrist")))
   seen = set()

@@ -110,6 +110,17 @@ def own_dataset_differences(config, workdir: str) -> list:
           summary_differences(state["config"], config_summary(config))]
 
 
+def serves_fewer_cameras(stored: Mapping[str, Any], wanted: Mapping[str, Any]) -> bool:
+  """Whether a dataset summarised by `stored` serves a config that reads some of its cameras: the summaries differ
+  only in the cameras and every wanted camera is stored (a front + wrist dataset serves a front-only run, which
+  reads the same episodes' front frames). Only a complete dataset may: one camera fewer could not finish it."""
+  differences = summary_differences(stored, wanted)
+  if [key for key, _, _ in differences] != ["cameras"]:
+    return False
+  _, have, want = differences[0]
+  return set(want) <= set(have)
+
+
 FOREIGN_MARKERS = ("dataset_info.json", "features.json")   # TFDS metadata: a dataset is there
 
 
@@ -118,6 +129,8 @@ def check_compatible(path: str, summary: Mapping[str, Any]) -> Dict[str, Any]:
   state = rlds.load_state(path)
   if state is not None:
     differences = config_differences(state["config"], summary)
+    if differences and state["complete"] and serves_fewer_cameras(state["config"], summary):
+      return state
     if differences:
       raise UserError(f"{path} holds a dataset of another config ({'; '.join(differences)}); it is left as it "
                       "is: use another --workdir, or set --config.data.dir to another folder.")
