@@ -17,6 +17,7 @@ from roboshape import envs
 from roboshape import fields
 from roboshape import rundir
 from roboshape.encoders import columns
+from roboshape.envs import camera
 from roboshape.errors import UserError
 
 TASKS = envs.TASKS
@@ -51,8 +52,8 @@ def env_config(variant: str) -> ml_collections.ConfigDict:
       sim_backend="physx_cpu",  # or "physx_cuda" (physics on a GPU); each worker owns one env either way
       # also store the camera's depth (uint16 mm) in the dataset, for pretrain.train.depth_weight (:small's)
       depth=_pick(variant, paper=False, small=True, tiny=False),
-      # the cameras rendered and stored (roboshape/envs/camera.py): the front one, and "wrist" on the hand
-      cameras=("front",),
+      # the cameras rendered and stored (roboshape/envs/camera.py `CAMERAS`): the front one alone by default
+      cameras=camera.DEFAULT,
   ))
 
 

@@ -9,6 +9,7 @@
 from roboshape import encoders
 from roboshape import rundir
 from roboshape.encoders import columns
+from roboshape.envs import camera
 
 
 def grid_configs(config, workdir: str):
@@ -52,7 +53,7 @@ def grid_configs(config, workdir: str):
       sub.pretrain.from_workdir = rundir.grid_run_dir(workdir, task, sub.encoder)
       pretrains = False
     sub.stages = tuple(s for s in config.stages if s != "report" and (pretrains or s != "pretrain"))
-    sub.data.dir = rundir.grid_data_dir(config, workdir, task, tuple(sub.env.cameras))
+    sub.data.dir = rundir.grid_data_dir(config, workdir, task, camera.others(sub.env.cameras))
     seeds = config.grid.get("train_seeds", {}).get(task)
     if seeds:
       sub.policy.train_seeds = tuple(seeds)

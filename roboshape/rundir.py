@@ -83,7 +83,7 @@ REMOVED = {
 # to configs/common.py gets its entry here; tests/test_launch.py reads the published configs back through it.
 ADDED = {
     "env.depth": False,
-    "env.cameras": ("front",),
+    "env.cameras": ("front",),           # the front camera alone (roboshape/envs/camera.py DEFAULT)
     "pretrain.train.depth_weight": 0.0,
     "pretrain.train.mask_weight": 0.0,
     "pretrain.train_seeds": (),
@@ -320,11 +320,11 @@ def grid_run_dir(workdir: str, task: str, column: str) -> str:
   return os.path.join(workdir, grid_cell(task, column))
 
 
-def grid_data_dir(config, workdir: str, task: str, cameras=("front",)) -> str:
-  """The data.dir of a grid's runs of `task` that see `cameras`: the task's datasets, shared by those runs and
-  collected once; <data root>/<task> for the front camera alone, <task>_<other cameras> with more ("pick_wrist")."""
-  others = [c for c in cameras if c != "front"]
-  return os.path.join(data_root(config, workdir), "_".join([task] + others))
+def grid_data_dir(config, workdir: str, task: str, other_cameras=()) -> str:
+  """The data.dir of a grid's runs of `task` that see the front camera and `other_cameras` (roboshape.envs.camera
+  `others`): the task's datasets, shared by those runs and collected once; <data root>/<task> for the front camera
+  alone, <task>_<other cameras> with more ("pick_wrist")."""
+  return os.path.join(data_root(config, workdir), "_".join([task, *other_cameras]))
 
 
 # ----------------------------------------------------------------------------------------------------------------

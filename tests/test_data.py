@@ -516,7 +516,7 @@ def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, s
   config.data.train_episodes, config.env.resolution, config.env.depth = 2, 32, True    # the real dataset's
   config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 1
   workdir = str(tmp_path / "grid")
-  data = rundir.grid_data_dir(config, workdir, "push", ("front", "wrist"))
+  data = rundir.grid_data_dir(config, workdir, "push", ("wrist",))
   assert data.endswith("push_wrist")
   shutil.copytree(os.path.dirname(real_dataset), os.path.join(data, os.path.basename(os.path.dirname(real_dataset))))
   specs = []

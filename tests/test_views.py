@@ -106,7 +106,7 @@ def test_the_wrist_column_reads_back_from_a_saved_config_and_has_its_own_grid_da
   assert columns.of_config(saved) == "objects+wrist"
   assert columns.of_config(_config("objects")) == "objects"
   assert rundir.grid_data_dir(config, "/w", "pick") == "/w/data/pick"
-  assert rundir.grid_data_dir(config, "/w", "pick", ("front", "wrist")) == "/w/data/pick_wrist"
+  assert rundir.grid_data_dir(config, "/w", "pick", camera.others(("front", "wrist"))) == "/w/data/pick_wrist"
 
 
 def test_an_encoder_that_reads_the_front_view_alone_is_refused_with_several_cameras(monkeypatch):

@@ -34,6 +34,7 @@ from roboshape import rundir
 from roboshape.errors import DiskFull
 from roboshape.errors import UserError
 from roboshape.data import rlds
+from roboshape.envs import camera
 
 LEVEL = "train"
 SEED_BASES = {"train": 0, "val": 1_000_000}
@@ -41,7 +42,7 @@ SEED_BASES = {"train": 0, "val": 1_000_000}
 _SUMMARY_FIELDS = ("task", "level", "resolution", "min_distractors", "max_distractors", "max_episode_steps",
                    "train_episodes", "val_episodes", "train_seed_base", "val_seed_base", "depth", "cameras")
 # Values of fields that datasets written before the field existed do not record.
-_SUMMARY_DEFAULTS = {"depth": False, "cameras": ["front"]}
+_SUMMARY_DEFAULTS = {"depth": False, "cameras": list(camera.DEFAULT)}
 _MAX_WORKER_RESTARTS = 3
 
 

@@ -183,7 +183,7 @@ class _ClipTable:
 
 
 def clip_batches(path: str, split: str, clip_length: int, batch_size: int, seed: int = 0,
-                 start_batch: int = 0, cameras: Sequence[str] = ("front",)) -> Iterator[Dict[str, np.ndarray]]:
+                 start_batch: int = 0, cameras: Sequence[str] = camera.DEFAULT) -> Iterator[Dict[str, np.ndarray]]:
   """Endless batches of random clips (uniform over all clips of `clip_length` consecutive frames, of every camera
   of `cameras`: each view of an episode is one more source of clips, under the front camera's names).
 

@@ -65,7 +65,7 @@ DESCRIPTION = (
 
 
 def features(resolution: int, depth: bool = False, state: bool = False,
-             cameras: Sequence[str] = ("front",)) -> tfds.features.FeaturesDict:
+             cameras: Sequence[str] = camera.DEFAULT) -> tfds.features.FeaturesDict:
   """The TFDS features of an episode at `resolution` x `resolution` pixels: each camera's image and segmentation
   (and depth if `depth`) under its keys (roboshape/envs/camera.py), observation/state if `state`."""
   scalar = tfds.features.Scalar
@@ -105,7 +105,7 @@ def features(resolution: int, depth: bool = False, state: bool = False,
 def features_of(summary: Mapping[str, Any]) -> tfds.features.FeaturesDict:
   """The features of the dataset roboshape.json's config `summary` describes (resolution, depth, state, cameras)."""
   return features(int(summary["resolution"]), bool(summary.get("depth", False)), bool(summary.get("state", False)),
-                  tuple(summary.get("cameras", ("front",))))
+                  tuple(summary.get("cameras", camera.DEFAULT)))
 
 
 def to_rlds(episode: Mapping[str, Any]) -> Dict[str, Any]:
@@ -314,7 +314,7 @@ class DatasetWriter:
     self.resolution = int(state["config"]["resolution"])
     self.depth = bool(state["config"].get("depth", False))
     self.has_state = bool(state["config"].get("state", False))
-    self.cameras = tuple(state["config"].get("cameras", ("front",)))
+    self.cameras = tuple(state["config"].get("cameras", camera.DEFAULT))
     self.features = features_of(state["config"])
     self._serialize = EpisodeSerializer(self.features)
     os.makedirs(path, exist_ok=True)

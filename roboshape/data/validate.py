@@ -64,7 +64,7 @@ def _check_episode(ep: Dict[str, Any], expected_seed: int, config: Dict[str, Any
   if ep["task"] != config["task"] or ep["level"] != config["level"]:
     problems.append(f"{where}: task/level {ep['task']}/{ep['level']}, "
                     f"the dataset is {config['task']}/{config['level']}")
-  for name in config.get("cameras", ("front",)):      # each camera's frames (roboshape/envs/camera.py)
+  for name in config.get("cameras", camera.DEFAULT):      # each camera's frames (roboshape/envs/camera.py)
     image_key, seg_key, depth_key = camera.keys(name)
     image, seg = ep.get(image_key), ep.get(seg_key)
     if image is None or image.dtype != np.uint8 or image.shape != (num_steps, res, res, 3):

@@ -20,6 +20,7 @@ from typing import Any, Dict, Tuple
 
 from roboshape import fields as fields_lib
 from roboshape.encoders import registry
+from roboshape.envs import camera
 from roboshape.errors import UserError
 
 SEPARATOR = "+"
@@ -44,7 +45,7 @@ OPTIONS = {o.name: o for o in (
            "the robot's own pose as one more token per frame (roboshape/encoders/proprio.py)"),
     Option("rel", (("policy.hand_relative", True),),
            "with proprio: each token's object relative to the hand (roboshape/encoders/proprio.py)"),
-    Option("wrist", (("env.cameras", ("front", "wrist")),),
+    Option("wrist", (("env.cameras", (camera.FRONT, camera.WRIST)),),
            "a second camera on the hand: the encoder reads the front and the wrist views (roboshape/encoders/"
            "views.py; a dataset collected with both)"),
 )}

@@ -20,12 +20,10 @@ import functools
 
 from roboshape.envs import camera
 
-FRONT = "front"
-
 
 def _view_keys(view: str, inputs):
   """The keys of `view`'s observation that stand for `inputs`, the front camera's names ("state" stays itself)."""
-  names = dict(zip(camera.keys(FRONT), camera.keys(view)))
+  names = dict(zip(camera.keys(camera.FRONT), camera.keys(view)))
   return [names.get(k, k) for k in inputs]
 
 
@@ -52,7 +50,7 @@ def _step(base_step, base_inputs, cameras, params, carry, obs):
 def _points(base_points, cameras, num_tokens, token_dim, tokens):
   """Where each token's object is: the front view's tokens by the base encoder's points, the others none."""
   import jax.numpy as jnp  # pylint: disable=import-outside-toplevel
-  front = cameras.index(FRONT)
+  front = cameras.index(camera.FRONT)
   where, valid = base_points(tokens[..., front * num_tokens:(front + 1) * num_tokens, :token_dim])
   pad = [(0, 0)] * (where.ndim - 2)
   before, after = front * num_tokens, (len(cameras) - front - 1) * num_tokens
@@ -61,7 +59,7 @@ def _points(base_points, cameras, num_tokens, token_dim, tokens):
 
 def reads_frames(encoder) -> bool:
   """Whether `encoder` reads any of the front camera's frames (an encoder of the state alone does not)."""
-  return any(k in camera.keys(FRONT) for k in encoder.inputs)
+  return any(k in camera.keys(camera.FRONT) for k in encoder.inputs)
 
 
 def with_views(encoder, cameras):

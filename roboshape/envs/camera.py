@@ -21,9 +21,11 @@ from typing import Sequence, Tuple
 
 import numpy as np
 
-CAMERAS = ("front", "wrist")
+FRONT, WRIST = "front", "wrist"
+CAMERAS = (FRONT, WRIST)
+DEFAULT = (FRONT,)          # env.cameras' default: the front camera alone, as every run before the field
 FRAME_KEYS = ("image", "segmentation", "depth")   # a camera's frames, the front camera's names
-_PREFIX = {"front": "", "wrist": "wrist_"}
+_PREFIX = {FRONT: "", WRIST: "wrist_"}
 
 # The wrist camera: on the hand link, 3.5 cm along its x and 3.6 cm up its z, turned to look along the fingers (+z)
 # and shifted 2 cm sideways and 1.15 cm forward, as panda_v3.urdf's camera_link; ManiSkill's vertical FOV for it.
@@ -35,6 +37,11 @@ WRIST_FOV = np.pi / 2
 EYE = (0.42, 0.0, 0.34)
 TARGET = (-0.16, 0.0, 0.02)
 FOV = 0.95                  # radians, vertical
+
+
+def others(cameras: Sequence[str]) -> Tuple[str, ...]:
+  """The cameras of `cameras` beyond the front one, in order (what names a grid's dataset of several cameras)."""
+  return tuple(c for c in cameras if c != FRONT)
 
 
 def rotation() -> np.ndarray:

@@ -85,7 +85,7 @@ class RoboShapeEnv(BaseEnv):
 
   def __init__(self, *args, level: str = "train", resolution: int = 64, min_distractors: int = 1,
                max_distractors: int = 4, robot_uids: str = "panda", robot_init_qpos_noise: float = 0.08,
-               cameras: Tuple[str, ...] = ("front",), **kwargs):
+               cameras: Tuple[str, ...] = camera.DEFAULT, **kwargs):
     self.level = palettes.get_level(level)
     self.cameras = camera.check(cameras)
     if not 0 <= min_distractors <= max_distractors:
@@ -106,13 +106,13 @@ class RoboShapeEnv(BaseEnv):
   def _default_sensor_configs(self):
     configs = []
     for name in self.cameras:
-      if name == "front":
+      if name == camera.FRONT:
         pose = sapien_utils.look_at(eye=CAMERA_EYE, target=CAMERA_TARGET)
-        configs.append(CameraConfig("front", pose, self.resolution, self.resolution, CAMERA_FOV, 0.01, 10.0))
+        configs.append(CameraConfig(name, pose, self.resolution, self.resolution, CAMERA_FOV, 0.01, 10.0))
       else:  # "wrist": on the hand, moving with it
         (xyz, rpy), offset = camera.WRIST_MOUNT, camera.WRIST_OFFSET
         pose = sapien.Pose(p=list(xyz), q=list(euler2quat(*rpy))) * sapien.Pose(p=list(offset))
-        configs.append(CameraConfig("wrist", pose, self.resolution, self.resolution, camera.WRIST_FOV, 0.01, 10.0,
+        configs.append(CameraConfig(name, pose, self.resolution, self.resolution, camera.WRIST_FOV, 0.01, 10.0,
                                     mount=self.agent.robot.links_map[camera.WRIST_LINK]))
     return configs
 
@@ -322,7 +322,7 @@ class RoboShapeEnv(BaseEnv):
                           self.agent.robot.get_qpos()[:, :7].cpu().numpy(), s["cube_p"].cpu().numpy(),
                           s["cube_q"].cpu().numpy(), s["goal_p"].cpu().numpy(), rows, present)
 
-  def frames(self, obs, name: str = "front") -> Tuple[np.ndarray, np.ndarray]:
+  def frames(self, obs, name: str = camera.FRONT) -> Tuple[np.ndarray, np.ndarray]:
     """Camera `name`'s rgb uint8 [N, H, W, 3] and RoboShape segmentation uint8 [N, H, W] from an observation."""
     data = obs["sensor_data"][name]
     rgb = data["rgb"].cpu().numpy().astype(np.uint8)
@@ -334,7 +334,7 @@ class RoboShapeEnv(BaseEnv):
     return rgb, seg
 
   @staticmethod
-  def depth(obs, name: str = "front") -> np.ndarray:
+  def depth(obs, name: str = camera.FRONT) -> np.ndarray:
     """Camera `name`'s depth uint16 [N, H, W] in millimetres (an env made with obs_mode "rgb+depth+...")."""
     depth = obs["sensor_data"][name]["depth"][..., 0].cpu().numpy().astype(np.int64)
     return np.clip(depth, 0, np.iinfo(np.uint16).max).astype(np.uint16)

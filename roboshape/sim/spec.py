@@ -29,7 +29,7 @@ class EnvSpec:
   max_episode_steps: int = 0
   sim_backend: str = "physx_cpu"
   depth: bool = False
-  cameras: Tuple[str, ...] = ("front",)
+  cameras: Tuple[str, ...] = camera.DEFAULT
 
   def __post_init__(self):
     try:

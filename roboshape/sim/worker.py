@@ -40,7 +40,7 @@ class Worker:
     from roboshape.envs import camera  # pylint: disable=import-outside-toplevel
     from roboshape.envs import experts  # pylint: disable=import-outside-toplevel
     self.np, self.torch = np, torch
-    self.cameras = camera.check(spec.get("cameras", ("front",)))
+    self.cameras = camera.check(spec.get("cameras", camera.DEFAULT))
     self.keys = {name: camera.keys(name) for name in self.cameras}       # image, segmentation, depth keys
     backend = {"cpu": "physx_cpu", "gpu": "physx_cuda"}.get(spec["sim_backend"], spec["sim_backend"])
     self.env = envs.make_env(spec["task"], spec["level"], resolution=spec["resolution"],
