@@ -1,6 +1,11 @@
 """Closed-loop evaluation throughput: the SAVi policy vs the oracle expert driving the same simulator workers.
 
-  .venv/bin/python benchmarks/eval_speed.py [--task push] [--variant small] [--workers 0] [--episodes 8]
+  .venv/bin/python benchmarks/eval_speed.py [--task push] [--variant small] [--workers 0] [--episodes 8] [--cameras]
+
+--cameras measures only the cost of the wrist camera in evaluation: the same SAVi policy (random weights) reading
+the front camera alone and reading the front and the wrist views (roboshape/encoders/views.py, as a `+wrist` column
+runs), each in its own pool of one worker rendering its cameras, the two taking turns on the same seeds; prints
+seconds per rollout step of each and their ratio.
 
 In one pool (same workers, same run), alternately:
   expert: `pool.collect(seeds)` (the oracle expert steps the envs inside the workers), env steps/s;
@@ -25,6 +30,8 @@ import jax  # pylint: disable=wrong-import-position
 import numpy as np  # pylint: disable=wrong-import-position
 
 from configs import common  # pylint: disable=wrong-import-position
+from roboshape.encoders import views  # pylint: disable=wrong-import-position
+from roboshape.envs import camera as camera_lib  # pylint: disable=wrong-import-position
 from roboshape.eval import closed_loop  # pylint: disable=wrong-import-position
 
 
@@ -46,6 +53,7 @@ def random_savi_policy(config):
       name="savi", params=params, step=functools.partial(savi.frozen_step, comp.model),
       init_state=lambda b: jnp.broadcast_to(init, (b, *init.shape)), num_tokens=comp.model.num_slots,
       token_dim=comp.model.slot_size, identity="savi:random")
+  encoder = views.with_views(encoder, config.env.cameras)        # itself with one camera
   net = policy_lib.net_from_config(config.policy)
   state = bc.init_state(net, bc.make_optimizer(config.policy.train),
                         (1, config.policy.history, encoder.num_tokens, encoder.token_dim), 0)
@@ -80,6 +88,39 @@ def time_env(pool, seeds, render, steps):
   return steps * len(seeds) / (time.perf_counter() - start)
 
 
+def compare_cameras(args) -> None:
+  """The --cameras measurement (module docstring): front alone against front + wrist, alternating rounds."""
+  from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
+  settings = {"front": camera_lib.DEFAULT, "front + wrist": (camera_lib.FRONT, camera_lib.WRIST)}
+  configs = {}
+  for label, cameras in settings.items():
+    config = common.get_config(args.task, "savi", args.variant)
+    config.env.max_episode_steps = args.max_steps
+    config.env.cameras = cameras
+    configs[label] = config
+  print(f"task {args.task}, SAVi+policy of variant {args.variant!r} (random weights), one worker a setting, "
+        f"{os.cpu_count()} CPUs", flush=True)
+  seconds = {label: [] for label in settings}
+  with SimPool(EnvSpec.from_config(configs["front"], level="train"), num_workers=1) as front, \
+       SimPool(EnvSpec.from_config(configs["front + wrist"], level="train"), num_workers=1) as both:
+    pools = {"front": front, "front + wrist": both}
+    policies = {label: random_savi_policy(configs[label]) for label in settings}
+    episodes = args.episodes or 2 * front.num_envs
+    for label, pool in pools.items():                # warm-up: worker start, shaders, the policy's compilation
+      time_policy(pool, policies[label], [2 * 10**9 + i for i in range(pool.num_envs)])
+    for rep in range(args.rounds):
+      seeds = [10**9 + 800_000 + rep * 10_000 + i for i in range(episodes)]
+      for label, pool in pools.items():
+        rate, _ = time_policy(pool, policies[label], seeds)
+        seconds[label].append(1.0 / rate)
+      print(f"  round {rep + 1}: " + ", ".join(f"{label} {1e3 * s[-1]:.1f} ms/step" for label, s in seconds.items()),
+            flush=True)
+  one, two = (min(seconds[label]) for label in settings)
+  print(f"per rollout step (best of {args.rounds}): front {1e3 * one:.1f} ms, front + wrist {1e3 * two:.1f} ms")
+  print(f"ratio front + wrist / front per evaluated episode: {two / one:.2f} (bar <= 2: "
+        f"{'PASS' if two / one <= 2 else 'FAIL'})")
+
+
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--task", default="push", choices=common.TASKS)
@@ -88,7 +129,11 @@ def main():
   parser.add_argument("--episodes", type=int, default=0, help="episodes per measurement (0: 2 per env)")
   parser.add_argument("--max-steps", type=int, default=0, help="episode step limit (0: the task's horizon)")
   parser.add_argument("--rounds", type=int, default=3, help="alternating expert/policy measurements")
+  parser.add_argument("--cameras", action="store_true", help="only the wrist camera's cost (module docstring)")
   args = parser.parse_args()
+  if args.cameras:
+    compare_cameras(args)
+    return
   from roboshape.sim import EnvSpec, SimPool  # pylint: disable=import-outside-toplevel
 
   config = common.get_config(args.task, "savi", args.variant)
