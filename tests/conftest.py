@@ -11,6 +11,9 @@ sys.path.insert(0, ROOT)
 # lives in pytest's own cache folder, so it is never committed and `rm -rf .pytest_cache` clears it; a
 # JAX_COMPILATION_CACHE_DIR already set wins.
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(ROOT, ".pytest_cache", "jax"))
+# Every program is kept, not only those that took over a second to compile (JAX's default): the suite's programs
+# are small, and most of its compile time is many sub-second compiles that other tests and processes repeat.
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 import numpy as np  # pylint: disable=wrong-import-position
 import pytest  # pylint: disable=wrong-import-position
