@@ -287,8 +287,7 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
       )),
       eval=ml_collections.ConfigDict(dict(
           history=0,              # frames seen at control time; 0: the training history
-          action="mean",          # "mean": mixture mean; "sample": a mode drawn by weight, low-noise around it;
-                                  # "mode": the heaviest mode's mean
+          action="mean",          # "mean": mixture mean; "sample": a mode drawn by weight, low-noise around it
           noise=0.1,              # for action="sample": the fraction of the mode's scale added as noise
       )),
   ))

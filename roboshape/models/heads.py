@@ -5,7 +5,6 @@
   nll = -gmm_log_prob(gmm, actions)                     # actions [..., A] -> [...]
   a = gmm_mean(gmm)                                     # [..., A]: the mixture mean (the default eval action)
   a = gmm_sample(gmm, rng, noise=0.1)                   # a mode drawn by its weight, its mean plus scaled noise
-  a = gmm_mode(gmm)                                     # the heaviest mode's mean: committed and deterministic
 
 The head puts tanh on the means (actions are normalised to [-1, 1]) and softplus plus a floor on the scales.
 The mixture is written by hand with `jax.scipy.stats.norm.logpdf` and `jax.nn.log_softmax` / `jax.nn.logsumexp`
@@ -45,13 +44,6 @@ def gmm_mean(gmm: GMM) -> jax.Array:
   """The mixture mean [..., A]."""
   weights = jax.nn.softmax(gmm.logits, axis=-1)
   return jnp.sum(weights[..., None] * gmm.means, axis=-2)
-
-
-def gmm_mode(gmm: GMM) -> jax.Array:
-  """The mean [..., A] of the mode with the largest weight: it commits to one mode as a sample does (the mixture
-  mean averages "close" with "open"), without a draw that may pick a light mode at any step."""
-  mode = jnp.argmax(gmm.logits, axis=-1)
-  return jnp.take_along_axis(gmm.means, mode[..., None, None], axis=-2)[..., 0, :]
 
 
 def gmm_sample(gmm: GMM, rng: jax.Array, noise: float = 0.1) -> jax.Array:

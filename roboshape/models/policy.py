@@ -202,8 +202,7 @@ class Carry(NamedTuple):
   rng: jax.Array
 
 
-# ControlSpec.action: the mixture mean, a mode drawn by weight, or the heaviest mode's mean
-ACTIONS = ("mean", "sample", "mode")
+ACTIONS = ("mean", "sample")      # ControlSpec.action: the mixture mean, or a mode drawn by weight
 
 # The ranges of the policy section's fields that describe the trunk and how it acts (its training's: train/bc.py).
 RANGES = (
@@ -221,7 +220,7 @@ RANGES = (
     ranges.Flag("policy.proprio", "a proprioception token per frame"),
     ranges.Flag("policy.hand_relative", "each token's object relative to the hand (needs policy.proprio)"),
     ranges.Flag("policy.frame_pool", "each frame's tokens pooled into one before the temporal transformer"),
-    ranges.Choice("policy.eval.action", ACTIONS, "the mixture mean, a sampled mode or the heaviest mode"),
+    ranges.Choice("policy.eval.action", ACTIONS, "the mixture mean, or a sampled mode"),
 )
 
 
@@ -244,8 +243,7 @@ class ControlSpec:
 
   Attributes:
     history: frames the trunk sees at control time (<= the training history).
-    action: "mean" (mixture mean), "sample" (a mode drawn by weight plus `noise` x its scale) or "mode" (the
-      heaviest mode's mean).
+    action: "mean" (mixture mean) or "sample" (a mode drawn by weight plus `noise` x its scale).
     noise: the sampling noise scale, for action="sample".
   """
   history: int
@@ -268,8 +266,6 @@ def control_step(net: PolicyNet, spec: ControlSpec, encoder_step: Callable, norm
   rng = keys[:, 0]
   if spec.action == "mean":
     action = heads.gmm_mean(gmm)                                                    # [B, A]
-  elif spec.action == "mode":
-    action = heads.gmm_mode(gmm)
   else:
     action = jax.vmap(lambda g, k: heads.gmm_sample(g, k, spec.noise))(gmm, keys[:, 1])
   action = action * norm_scale + norm_offset

@@ -466,7 +466,7 @@ def load_policy(workdir: str, history: Optional[int] = None, action: Optional[st
   Args:
     workdir: a run's workdir (config.json, policy/checkpoints, policy/norm_stats.json, the encoder's files).
     history: frames seen at control time (default config.policy.eval.history, 0 meaning the training history).
-    action: "mean", "sample" or "mode" (default config.policy.eval.action).
+    action: "mean" or "sample" (default config.policy.eval.action).
     step: the checkpoint step (default: the latest).
     seed: the sampling seed (action="sample").
     train_seed: which policy of a run with `policy.train_seeds` (default: its first; without: the one in policy/).
