@@ -279,6 +279,8 @@ def policy_config(variant: str) -> ml_collections.ConfigDict:
           weight_decay=1e-4,
           warmup_steps=_pick(variant, paper=2000, small=200, tiny=2),
           grad_clip=1.0,
+          # the loss weight of a step where the demo's gripper command changes (grasp, release); 1: none
+          change_weight=1.0,
           log_every=_pick(variant, paper=100, small=50, tiny=5),
           eval_every=_pick(variant, paper=2000, small=500, tiny=10),
           checkpoint_every=_pick(variant, paper=5000, small=500, tiny=10),

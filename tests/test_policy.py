@@ -239,6 +239,21 @@ def test_windows_cover_every_action_and_target_each_positions_own():
   np.testing.assert_array_equal(b["mask"], [[1, 1, 1], [1, 1, 1], [1, 1, 0], [1, 0, 0]])
 
 
+def test_gripper_change_steps_carry_change_weight_and_nothing_else_does():
+  # Two episodes of 5 frames; gripper commands (last entry) open, open, closed, closed | open, closed, closed, open.
+  # The second episode's first frame differs from the first's last frame but starts an episode: not a change.
+  grip = np.array([1, 1, -1, -1, -1, 1, -1, -1, 1, 1], np.float32)
+  data = dict(features=np.arange(10, dtype=np.float32).reshape(10, 1, 1),
+              action=np.concatenate([np.zeros((10, 6), np.float32), grip[:, None]], axis=1),
+              offsets=np.array([0, 5, 10]), success=np.array([True, True]))
+  np.testing.assert_array_equal(bc.gripper_changes(data["action"], data["offsets"]), [2, 6, 8])
+  w = bc.Windows(data, history=5, normalise=([1.0] * 7, [0.0] * 7), change_weight=4.0)
+  b = w.gather(np.arange(2))
+  np.testing.assert_array_equal(b["weight"], [[1, 1, 4, 1, 0], [1, 4, 1, 4, 0]])    # the last frames: no action
+  plain = bc.Windows(data, history=5, normalise=([1.0] * 7, [0.0] * 7)).gather(np.arange(2))
+  np.testing.assert_array_equal(plain["weight"], plain["mask"])
+
+
 def test_a_run_trained_with_action_chunks_is_refused_in_one_line_and_one_without_loads(run, tmp_path, monkeypatch):
   monkeypatch.setattr(encoders, "build_encoder", lambda config, workdir: run["encoder"])
   old = run["config"].to_dict()

@@ -65,6 +65,8 @@ RANGES = (
     ranges.Number("policy.train.learning_rate", 0.0, "the peak learning rate", low_ok=False),
     ranges.Number("policy.train.weight_decay", 0.0, "AdamW's weight decay"),
     ranges.Number("policy.train.grad_clip", 0.0, "the global gradient-norm clip", low_ok=False),
+    ranges.Number("policy.train.change_weight", 0.0, "the loss weight of a step where the gripper command changes",
+                  low_ok=False),
     ranges.Ints("policy.train_seeds", 0, "one policy per training seed; (): one policy trained with config.seed",
                 empty_ok=True, distinct=True),
 )
@@ -93,6 +95,14 @@ def norm_stats(actions: np.ndarray) -> Dict[str, list]:
 # Windows of cached features.
 
 
+def gripper_changes(actions: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+  """Frame indices [K] whose gripper command (sign of the last action entry) differs from the previous frame's in
+  the same episode; `offsets` [E + 1] are the episodes' first frames. An episode's first frame is never one."""
+  opened = actions[:, -1] > 0
+  changed = np.flatnonzero(opened[1:] != opened[:-1]) + 1
+  return changed[~np.isin(changed, offsets)]
+
+
 class Windows:
   """The windows of one split's cached episodes, gathered into batches.
 
@@ -101,12 +111,18 @@ class Windows:
     history: H.
     normalise: (scale, offset) arrays [A]; targets are (action - offset) / scale.
     successful_only: drop failed episodes.
+    change_weight: the loss weight of a target whose gripper command (the action's last entry, open > 0 > closed)
+      differs from the episode's previous one: the grasp and the release, a few steps of each demo, which a
+      mixture fitted to every step equally can leave to a light mode. 1: every target weighs the same.
   """
 
-  def __init__(self, data: dict, history: int, normalise, successful_only: bool = True):
+  def __init__(self, data: dict, history: int, normalise, successful_only: bool = True, change_weight: float = 1.0):
     self.features, self.history = data["features"], history
     scale, offset = (np.asarray(v, np.float32) for v in normalise)
     self.action = (data["action"] - offset) / scale
+    self.weight = np.ones(len(data["action"]), np.float32)
+    if change_weight != 1.0:
+      self.weight[gripper_changes(data["action"], data["offsets"])] = change_weight
     keep = np.flatnonzero(data["success"]) if successful_only else np.arange(len(data["success"]))
     if not len(keep):
       raise UserError("no successful episodes in the cached dataset: nothing to imitate.")
@@ -121,16 +137,16 @@ class Windows:
     return len(self.window_start)
 
   def gather(self, rows: np.ndarray) -> dict:
-    """Windows `rows` -> tokens [B, H, N, D], action [B, H, A], mask float32 [B, H].
+    """Windows `rows` -> tokens [B, H, N, D], action [B, H, A], mask float32 [B, H], weight float32 [B, H].
 
     Position p's target is the action taken at its frame; a frame repeated past an episode's last action (the
-    padding of a short episode) is masked."""
+    padding of a short episode) is masked. `weight` is the mask times each target's loss weight (change_weight)."""
     start, frames, s = self.episode_start[rows], self.episode_frames[rows], self.window_start[rows]
     local = s[:, None] + np.arange(self.history)[None]                                 # [B, H]
     frame_idx = start[:, None] + np.minimum(local, frames[:, None] - 1)
-    mask = local < (frames - 1)[:, None]
+    mask = (local < (frames - 1)[:, None]).astype(np.float32)
     return dict(tokens=np.asarray(self.features[frame_idx], np.float32), action=self.action[frame_idx],
-                mask=mask.astype(np.float32))
+                mask=mask, weight=mask * self.weight[frame_idx])
 
   def sample(self, batch_size: int, seed: int, step: int) -> dict:
     """A training batch, the same for the same (seed, step), so a resumed run sees the same data."""
@@ -199,7 +215,9 @@ def make_train_step(net, optimizer):
   def loss_fn(params, batch, rng):
     nll, sq = losses(net, params, batch, rng, train=True)
     denom = jnp.maximum(batch["mask"].sum(), 1.0)
-    return jnp.sum(nll * batch["mask"]) / denom, jnp.sum(sq.sum(-1) * batch["mask"]) / denom
+    weight = batch.get("weight", batch["mask"])         # Windows.gather's per-target loss weight; the mask's mean at 1
+    loss = jnp.sum(nll * weight) / jnp.maximum(weight.sum(), 1e-6)
+    return loss, jnp.sum(sq.sum(-1) * batch["mask"]) / denom
   @jax.jit
   def step(state, batch, rng):
     rng = jax.random.fold_in(rng, state["step"])
@@ -342,7 +360,7 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
     stats = norm_stats(train_data["action"][valid_rows])
     fileio.atomic_write_json(stats_path, stats)
   normalise = (stats["scale"], stats["offset"])
-  train_w = Windows(train_data, pc.history, normalise)
+  train_w = Windows(train_data, pc.history, normalise, change_weight=tc.change_weight)
   val_w = Windows(val_data, pc.history, normalise)
   print(f"[train_policy] {train_w.num_episodes} train episodes ({len(train_w)} windows), "
         f"{val_w.num_episodes} val episodes; tokens {train_data['features'].shape[1:]}", flush=True)
