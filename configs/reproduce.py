@@ -73,9 +73,20 @@ def get_config(variant: str = "paper"):
       # {task: policy.eval settings} for the runs of that task: how its policies are run at control time where it
       # differs from the defaults (common.TASK_CONTROL; the config above was built for the first task only)
       task_control=ml_collections.ConfigDict({t: common.TASK_CONTROL[t] for t in tasks if t in common.TASK_CONTROL}),
-      # {task: policy.train settings} for the runs of that task (common.TASK_SMALL_STEPS at :small)
-      task_train=ml_collections.ConfigDict(
-          {t: dict(steps=common.TASK_SMALL_STEPS[t]) for t in tasks if t in common.TASK_SMALL_STEPS}
-          if variant == "small" else {}),
+      # {task: policy.train settings} for the runs of that task (common.TASK_TRAIN; common.TASK_SMALL_STEPS at :small)
+      task_train=ml_collections.ConfigDict(_task_train(tasks, variant)),
   ))
   return config
+
+
+def _task_train(tasks, variant: str) -> dict:
+  """{task: the policy.train fields common.get_config sets per task} over `tasks`: every field some task sets, at
+  each task's own value (the default where it sets none), so no run inherits the first task's."""
+  default = common.policy_config(variant).train
+  per_task = {t: dict(common.TASK_TRAIN.get(t, {})) for t in tasks}
+  if variant == "small":
+    for t in tasks:
+      if t in common.TASK_SMALL_STEPS:
+        per_task[t]["steps"] = common.TASK_SMALL_STEPS[t]
+  keys = sorted({k for f in per_task.values() for k in f})
+  return {t: {k: per_task[t].get(k, default[k]) for k in keys} for t in tasks} if keys else {}

@@ -100,6 +100,7 @@ ADDED = {
     "policy.proprio": False,
     "policy.hand_relative": False,
     "policy.frame_pool": False,
+    "policy.train.change_weight": 1.0,
     "policy.train_seeds": (),
 }
 # The AE's fields that were read from the savi section before the AE had its own (its ae section's defaults).

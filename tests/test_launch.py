@@ -190,7 +190,7 @@ def test_every_saved_config_reads_back_with_every_field_of_todays_configs(tmp_pa
     with open(path) as f:
       saved = json.load(f)
     if "pretrain" in saved:                                     # written after the last renaming
-      assert config["policy"]["train"] == saved["policy"]["train"]
+      assert {k: config["policy"]["train"][k] for k in saved["policy"]["train"]} == saved["policy"]["train"]
       assert all(config["policy"].get(k) == v for k, v in saved["policy"].items() if k != "train" and
                  not isinstance(v, list))
 
