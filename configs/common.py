@@ -38,7 +38,7 @@ TASK_SMALL_STEPS = {"place": 15_000}
 # Behaviour-cloning settings where a task differs from policy_config's, in every variant. Place: the steps where
 # the demo's gripper command changes (grasp and release, two of a demo's ~46) weigh ten times the others, since a
 # mixture fitted to every step alike leaves the release to a light mode (results/small/recipe/README.md,
-# place_state_change10). Push and pick keep the default.
+# place_state_recipe). Push and pick keep the default.
 TASK_TRAIN = {"place": dict(change_weight=10.0)}
 
 
