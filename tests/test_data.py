@@ -536,6 +536,9 @@ def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, s
     assert json.load(f)
   figures = sorted(os.listdir(os.path.join(run, "savi", "figures")))
   assert figures[-2:] == ["step_0000020.png", "step_0000020_wrist.png"]   # the last validation draws both views
+  with open(os.path.join(run, "savi", "val_metrics.json")) as f:
+    last = json.load(f)[-1]
+  assert {"cube_found_front", "cube_found_wrist", "fg_ari_front", "fg_ari_wrist"} <= set(last)   # and scores each
   (features,) = os.listdir(os.path.join(run, "features"))
   with open(os.path.join(run, "features", features, "manifest.json")) as f:
     assert json.load(f)["num_tokens"] == 2 * config.savi.num_slots       # each view's slots

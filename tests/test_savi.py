@@ -669,6 +669,35 @@ def test_a_pooled_model_is_evaluated_at_the_segmentation_resolution(tmp_path):
     pretrain.validate_config(config)
 
 
+def test_each_views_metrics_are_over_its_own_episodes():
+  # One oracle decomposition scored against two views of an episode: the front view's segmentation is the
+  # oracle's masks, the wrist view's moves the cube to where the oracle has no slot for it.
+  front = np.zeros((4, 8, 8), np.uint8)
+  front[:, 4:] = 1
+  front[:, 1:3, 1:3] = 3
+  wrist = front.copy()
+  wrist[:, 1:3, 1:3] = 0
+  wrist[:, 5:7, 5:7] = 3
+  masks = np.moveaxis(np.eye(2)[(front == 3).astype(int)], -1, 1)        # slot 1 is the front view's cube
+  image = np.zeros((4, 8, 8, 3), np.uint8)
+
+  def oracle(_, clip, first_segmentation):
+    return {"masks": masks[None], "recon": np.zeros((1, 4, 8, 8, 3)), "rgb": np.zeros((1, 4, 2, 8, 8, 3))}
+
+  views = [{"image": image, "segmentation": front}, {"image": image, "segmentation": wrist}]
+  result = slot_eval.evaluate(oracle, None, views, frames=4, views=("front", "wrist"))
+  assert (result["cube_iou_front"], result["cube_found_front"]) == (1.0, 1.0)
+  # the wrist view's cube (4 pixels) lies inside the other slot (the frame's 60 other pixels)
+  assert (result["cube_iou_wrist"], result["cube_found_wrist"]) == (pytest.approx(4 / 60), 0.0)
+  # the pooled figures are over both views' frames, as without `views`
+  assert (result["cube_iou"], result["cube_found"]) == (pytest.approx((1 + 4 / 60) / 2), 0.5)
+  assert result["fg_ari"] == pytest.approx((result["fg_ari_front"] + result["fg_ari_wrist"]) / 2)
+  plain = slot_eval.evaluate(oracle, None, views, frames=4)
+  assert {k: result[k] for k in plain} == pytest.approx(plain, nan_ok=True)
+  assert len(result) == 3 * len(plain)
+  assert "cube_found_front" not in slot_eval.evaluate(oracle, None, views, frames=4, views=("front",))
+
+
 def _ari_by_pair_counting(a, b):
   """ARI from the four pair counts over all item pairs (an independent formula: Hubert and Arabie's)."""
   a, b = np.ravel(a), np.ravel(b)

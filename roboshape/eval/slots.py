@@ -29,7 +29,7 @@ Decompose = Callable[[object, np.ndarray, np.ndarray], Dict[str, np.ndarray]]
 def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarray]], frames: int,
              background_ids: Sequence[int] = (0, 1), pool: int = 1,
              figure_path: Union[str, Sequence[str], None] = None, figure_frames: int = 4,
-             title: str = "") -> Dict[str, float]:
+             title: str = "", views: Sequence[str] = ()) -> Dict[str, float]:
   """FG-ARI and matched mIoU of the slot masks on whole (first `frames` frames of) episodes, the segmentation ids
   `background_ids` left out.
 
@@ -44,29 +44,41 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
 
   episodes: dicts with image uint8 [S, H, W, 3] and segmentation uint8 [S, H, W]. Writes the decomposition figure
   of the first episode's first `figure_frames` frames to `figure_path` when given (a sequence of paths: the figure
-  of the i-th episode to the i-th path, e.g. each camera's view of one episode).
+  of the i-th episode to the i-th path, e.g. each camera's view of one episode). With `views` (camera names, two
+  or more) the episodes are each episode's views in that order, one after the other, and every metric is also
+  given per view as <metric>_<view>, over that view's episodes alone.
   """
   paths = [figure_path] if isinstance(figure_path, str) else list(figure_path or ())
-  aris, frame_aris, ious, mses = [], [], [], []
-  best = {name: [] for name in OBJECTS}
+  scored = []   # per episode: (fg_ari, its frames' FG-ARIs, mIoU, recon MSE, {object: best IoU per frame})
   for i, episode in enumerate(episodes):
     video = episode["image"][:frames]
     out = jax.device_get(decompose(params, video[None], ids.robot_as_one(episode["segmentation"][:1])))
     seg = ids.robot_as_one(episode["segmentation"][:frames])   # the robot is one object
     masks = decomposition.upsample_masks(out["masks"][0], pool)         # at the segmentation's resolution
-    for name, object_id in OBJECTS.items():                             # the hand apart from the arm
-      best[name].append(decomposition.best_slot_iou(episode["segmentation"][:frames], masks, object_id))
-    aris.append(decomposition.fg_ari(seg, masks, background_ids))
-    frame_aris.extend(decomposition.fg_ari(seg[t:t + 1], masks[t:t + 1], background_ids) for t in range(len(seg)))
-    ious.append(decomposition.matched_miou(seg, masks, background_ids))
+    best = {name: decomposition.best_slot_iou(episode["segmentation"][:frames], masks, object_id)
+            for name, object_id in OBJECTS.items()}                     # the hand apart from the arm
     pooled = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, pool))
-    mses.append(float(np.mean((out["recon"][0] - pooled) ** 2)))
+    scored.append((decomposition.fg_ari(seg, masks, background_ids),
+                   [decomposition.fg_ari(seg[t:t + 1], masks[t:t + 1], background_ids) for t in range(len(seg))],
+                   decomposition.matched_miou(seg, masks, background_ids),
+                   float(np.mean((out["recon"][0] - pooled) ** 2)), best))
     if i < len(paths):
       n = figure_frames
       decomposition.decomposition_figure(pooled[:n], out["recon"][0, :n], out["rgb"][0, :n], out["masks"][0, :n],
-                                         paths[i], _with_cube(title, best["cube"][i][:n]))
-  best = {name: np.concatenate(v) if v else np.zeros(0) for name, v in best.items()}
+                                         paths[i], _with_cube(title, best["cube"][:n]))
+  metrics = _summary(scored)
+  if len(views) > 1:
+    for v, view in enumerate(views):
+      metrics.update({f"{key}_{view}": value for key, value in _summary(scored[v::len(views)]).items()})
+  return metrics
+
+
+def _summary(scored) -> Dict[str, float]:
+  """`evaluate`'s metrics over some of its episodes' scores."""
+  best = {name: np.concatenate([s[4][name] for s in scored]) if scored else np.zeros(0) for name in OBJECTS}
   seen = {name: v[~np.isnan(v)] for name, v in best.items()}
+  aris, ious, mses = [s[0] for s in scored], [s[2] for s in scored], [s[3] for s in scored]
+  frame_aris = [a for s in scored for a in s[1]]
   with np.errstate(all="ignore"):
     objects = {f"{name}_iou": float(v.mean()) if v.size else float("nan") for name, v in seen.items()}
     objects["cube_found"] = (float(np.mean(seen["cube"] >= decomposition.FOUND_IOU)) if seen["cube"].size
@@ -90,7 +102,8 @@ def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str,
   first pretrain.eval.frames frames), scored and drawn as config.savi.eval says, with the decomposition figure of
   each evaluation in <root>/figures/step_<step>.png. With several env.cameras `episodes` holds each episode in
   every view, one after the other (roboshape/train/pretrain.py data_source): all of them are scored, and the first
-  episode's other views are drawn in step_<step>_<camera>.png."""
+  episode's other views are drawn in step_<step>_<camera>.png; the metrics are also given per view (`evaluate`'s
+  `views`) and the printed line names each view's cube IoU and share found."""
   ec, own = config.pretrain.eval, config.savi.eval
   decompose = functools.partial(savi.decompose, model)
   cameras = tuple(config.env.cameras)
@@ -103,8 +116,10 @@ def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str,
       run=lambda params, step: evaluate(decompose, params, episodes[:ec.episodes * len(cameras)], ec.frames,
                                         own.background_ids,
                                         model.input_pool, figure(step),
-                                        own.figure_frames, f"{config.name} step {step}"),
+                                        own.figure_frames, f"{config.name} step {step}", cameras),
       keys=("fg_ari", "fg_ari_frames", "miou", "cube_iou", "cube_found"), ylim=(None, 1.0),
       describe=lambda r: (f"val FG-ARI {r['fg_ari']:.3f} (per frame {r['fg_ari_frames']:.3f}) mIoU "
                           f"{r['miou']:.3f} cube IoU {r['cube_iou']:.3f} (found in {r['cube_found']:.0%} of frames) "
-                          f"recon MSE {r['recon_mse']:.5f}"))
+                          f"recon MSE {r['recon_mse']:.5f}"
+                          + "".join(f"; {c}: FG-ARI {r[f'fg_ari_{c}']:.3f} cube IoU {r[f'cube_iou_{c}']:.3f} "
+                                    f"found {r[f'cube_found_{c}']:.0%}" for c in cameras if len(cameras) > 1)))
