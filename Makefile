@@ -4,6 +4,11 @@ PY := .venv/bin/python
 DEMO_WORKDIR ?= runs/demo
 
 .PHONY: setup demo test bench clean-demo
+
+# Python keeps each module's compiled bytecode (__pycache__, ignored by git) even where the environment asks it not
+# to (PYTHONDONTWRITEBYTECODE): the suite starts dozens of Python processes (test workers, launch.py, simulator
+# workers, a notebook kernel), each of which would otherwise compile JAX's, TensorFlow's and SAPIEN's sources again.
+unexport PYTHONDONTWRITEBYTECODE
 setup:
 	@bash scripts/setup.sh
 

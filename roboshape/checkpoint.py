@@ -288,18 +288,25 @@ def _settle(sink: io.StringIO, poll: float = 0.05, quiet_polls: int = 6, limit: 
 
   Orbax reads every array at once and gives up on the first that fails; the others end later, on other threads,
   each printing a traceback ("Event loop is closed", or "Exception ignored in <coroutine>" with a page of
-  TensorStore spec when collected). Inside `_quiet` they go to `sink`: this waits until nothing more comes. The
-  abandoned reads' coroutines that the collections here free also warn that they were never awaited (a
-  RuntimeWarning, which a test run records): that warning is ignored here.
+  TensorStore spec when collected). Inside `_quiet` they go to `sink`. Each round collects garbage once (which
+  frees the abandoned coroutines, so they print now) and then waits until `sink` is unchanged for `quiet_polls`
+  polls; it is settled when a whole round added nothing. A collection scans every object of the process (a
+  noticeable fraction of a second beside TensorFlow and JAX), so it runs once a round, not once a poll. The
+  abandoned reads' coroutines that the collections free also warn that they were never awaited (a RuntimeWarning,
+  which a test run records): that warning is ignored here.
   """
-  deadline, calm, seen = time.monotonic() + limit, 0, -1
-  while time.monotonic() < deadline and calm < quiet_polls:
+  deadline, before = time.monotonic() + limit, -1
+  while time.monotonic() < deadline:
     with warnings.catch_warnings():
       warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
       gc.collect()
-    time.sleep(poll)
-    size = sink.tell()
-    calm, seen = (calm + 1, seen) if size == seen else (0, size)
+    calm, size = 0, sink.tell()
+    while calm < quiet_polls and time.monotonic() < deadline:
+      time.sleep(poll)
+      calm, size = (calm + 1, size) if sink.tell() == size else (0, sink.tell())
+    if size == before:
+      return
+    before = size
 
 
 def _abandoned_io(e: Optional[BaseException]) -> bool:
