@@ -18,8 +18,9 @@ stamp="$VENV/.requirements-$req_hash"
 if [ ! -f "$stamp" ]; then
   say "creating $VENV and installing requirements.txt (about 2 minutes on a fresh machine)"
   [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV" || die "could not create $VENV; install python3.11-venv."
-  # --no-compile: Python compiles a module's bytecode when it is first imported, so set-up does not compile the
-  # many modules of TensorFlow, torch and JAX that roboshape never imports
+  # --no-compile: Python compiles a module's bytecode when it is first imported (the Makefile keeps it even under
+  # PYTHONDONTWRITEBYTECODE), so set-up does not compile the many modules of TensorFlow, torch and JAX that
+  # roboshape never imports
   "$VENV/bin/pip" install --quiet --disable-pip-version-check --no-compile -r requirements.txt 2> >(grep -v "is ignored: it is neither" >&2) \
     || die "pip install -r requirements.txt failed (see above)."
   rm -f "$VENV"/.requirements-* "$VENV/.vulkan-ok"
