@@ -303,7 +303,8 @@ def _settle(sink: io.StringIO, poll: float = 0.05, quiet_polls: int = 6, limit: 
     calm, size = 0, sink.tell()
     while calm < quiet_polls and time.monotonic() < deadline:
       time.sleep(poll)
-      calm, size = (calm + 1, size) if sink.tell() == size else (0, sink.tell())
+      now = sink.tell()
+      calm, size = (calm + 1, size) if now == size else (0, now)
     if size == before:
       return
     before = size
