@@ -1,12 +1,19 @@
-"""The offline evaluation of a policy on validation demos (roboshape/eval/offline.py): phases and windows."""
+"""Evaluations of a finished run on its validation demos: the policy's offline action error (roboshape/eval/offline.py:
+phases and windows) and whether its SAVi finds the cube, by the cube's size (roboshape/eval/slots.py)."""
+import functools
 import json
 import os
 
 import numpy as np
 import pytest
 
+from roboshape import rundir
+from roboshape.encoders import savi as savi_encoder
 from roboshape.eval import offline
+from roboshape.eval import slots
+from roboshape.models import savi
 from roboshape.train import bc
+from roboshape.train import pretrain
 
 
 def test_phases_follow_the_experts_gripper_and_lift():
@@ -51,3 +58,22 @@ def test_the_offline_figures_of_the_tiny_run(tiny_run):
   expert = np.mean([np.linalg.norm(val["action"][a:a + offline.FIRST_STEPS, :3], axis=-1).mean()
                     for a in val["offsets"][:-1]])
   assert got["first_move"]["expert"] == pytest.approx(expert, rel=1e-5)
+
+
+@pytest.mark.usefixtures("cheap_xla")
+def test_the_cube_by_its_size_adds_up_to_the_savis_validation_of_the_tiny_run(tiny_run):
+  """slots.cube_by_area on the tiny run's validation frames (the synthetic red square is the cube, 4 of 256 pixels,
+  in the 1-2% bin in every frame) against slots.evaluate, the validation the pretrain stage runs, on the same ones."""
+  found = slots.cube_by_area(tiny_run)
+  config = rundir.load_config(tiny_run)
+  model, params, _ = savi_encoder.load(tiny_run)
+  _, episodes = pretrain.data_source(config, tiny_run)
+  metrics = slots.evaluate(functools.partial(savi.decompose, model), params, episodes, config.pretrain.eval.frames,
+                           pool=model.input_pool)
+  frames = sum(min(len(e["image"]), config.pretrain.eval.frames) for e in episodes)
+  assert list(found) == ["front"]
+  (row,) = [r for r in found["front"] if r["frames"]]
+  assert (row["lo"], row["hi"], row["frames"]) == (0.01, 0.02, frames)
+  assert row["iou"] == pytest.approx(metrics["cube_iou"]) and row["found"] == pytest.approx(metrics["cube_found"])
+  assert slots.area_table(found).splitlines()[2] == (f"| front | 1.0% - 2.0% | {frames} | {row['iou']:.2f} | "
+                                                     f"{row['found']:.0%} |")

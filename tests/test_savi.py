@@ -748,6 +748,26 @@ def test_the_best_slot_iou_of_an_object_is_per_frame_and_nan_where_it_is_out_of_
   assert np.isnan(iou[2])                                                     # frame 2: no cube in view
 
 
+def test_found_by_area_bins_each_frame_by_the_objects_share_of_it():
+  seg = np.zeros((3, 4, 4), np.uint8)
+  seg[0, :2, :2] = 3                   # frame 0: 4 of 16 pixels, alone in slot 1: IoU 1
+  seg[1, 0, 0] = 3                     # frame 1: 1 pixel, in slot 1 with 3 table pixels: IoU 1/4
+  slot_of = np.zeros((3, 4, 4), int)   # frame 2: no cube
+  slot_of[:2, :2, :2] = 1
+  masks = np.moveaxis(np.eye(2)[slot_of], -1, 1)
+  rows = decomposition.found_by_area(seg, masks, 3, edges=(0.0, 0.05, 0.1, 0.25))
+  assert [(r["lo"], r["hi"], r["frames"]) for r in rows] == [(0.0, 0.05, 0), (0.05, 0.1, 1), (0.1, 0.25, 1)]
+  assert np.isnan(rows[0]["iou"]) and np.isnan(rows[0]["found"])              # an empty bin
+  assert (rows[1]["iou"], rows[1]["found"]) == (0.25, 0.0)
+  assert (rows[2]["iou"], rows[2]["found"]) == (1.0, 1.0)                       # the last bin includes its top
+
+
+def test_the_cube_by_area_command_refuses_a_folder_without_a_run_in_one_line(tmp_path, capsys):
+  assert slot_eval.main([str(tmp_path / "absent")]) == 2
+  err = capsys.readouterr().err.splitlines()
+  assert len(err) == 1 and err[0].startswith("roboshape: error: ") and "absent" in err[0]
+
+
 def test_per_frame_fg_ari_forgives_slots_that_swap_objects_between_frames():
   """evaluate's fg_ari scores the video as one clustering, fg_ari_frames each frame alone: two objects that swap
   slots halfway are a perfect decomposition of every frame but not of the video."""

@@ -100,6 +100,27 @@ def best_slot_iou(segmentation: np.ndarray, masks: np.ndarray, object_id: int) -
 
 
 FOUND_IOU = 0.5     # a slot with at least this IoU with an object's mask has found it
+# The bins of an object's share of the frame's pixels that found_by_area reports (at 64x64: 20, 41, 82, 205 pixels).
+AREA_EDGES = (0.0, 0.005, 0.01, 0.02, 0.05, 1.0)
+
+
+def found_by_area(segmentation: np.ndarray, masks: np.ndarray, object_id: int,
+                  edges: Sequence[float] = AREA_EDGES) -> list:
+  """Whether a slot finds an object, by the object's size in the frame: for each bin [lo, hi) of the share of the
+  frame's pixels that are the object's (the last bin includes hi), a dict of lo, hi, the frames in the bin, their
+  mean best-slot IoU (best_slot_iou) and the share of them found (IoU >= FOUND_IOU), NaN for an empty bin. Frames
+  without the object are left out. segmentation int [T, H, W]; masks [T, K, H, W]."""
+  segmentation = np.asarray(segmentation)
+  iou = best_slot_iou(segmentation, masks, object_id)
+  area = (segmentation == object_id).reshape(len(segmentation), -1).mean(-1)
+  rows = []
+  for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+    upper = area <= hi if i == len(edges) - 2 else area < hi
+    picked = iou[~np.isnan(iou) & (area >= lo) & upper]
+    rows.append(dict(lo=lo, hi=hi, frames=int(picked.size),
+                     iou=float(picked.mean()) if picked.size else float("nan"),
+                     found=float(np.mean(picked >= FOUND_IOU)) if picked.size else float("nan")))
+  return rows
 
 
 def upsample_masks(masks: np.ndarray, factor: int) -> np.ndarray:

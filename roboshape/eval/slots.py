@@ -5,14 +5,19 @@ decomposition figure (roboshape/eval/decomposition.py has the metrics).
   metrics = evaluate(decompose, params, episodes, frames=6, background_ids=(0, 1), pool=model.input_pool)
   validation = validation(config, root, model, episodes)   # what the pretrain stage runs (config.pretrain.eval,
                                                            # config.savi.eval)
+
+  python -m roboshape.eval.slots WORKDIR    # whether the run's SAVi finds the cube, by the cube's size in the frame
 """
+import argparse
 import functools
 import os
+import sys
 from typing import Callable, Dict, Optional, Sequence, Union
 
 import jax
 import numpy as np
 
+from roboshape import errors
 from roboshape import rundir
 from roboshape.envs import ids
 from roboshape.eval import decomposition
@@ -123,3 +128,51 @@ def validation(config, root: str, model: savi.SAVi, episodes: Sequence[Dict[str,
                           f"recon MSE {r['recon_mse']:.5f}"
                           + "".join(f"; {c}: FG-ARI {r[f'fg_ari_{c}']:.3f} cube IoU {r[f'cube_iou_{c}']:.3f} "
                                     f"found {r[f'cube_found_{c}']:.0%}" for c in cameras if len(cameras) > 1)))
+
+
+def cube_by_area(workdir: str) -> Dict[str, list]:
+  """{camera: decomposition.found_by_area of the cube} for the SAVi trained in `workdir`, on the frames its
+  pretraining validates (pretrain.data_source: the first pretrain.eval.frames frames of pretrain.eval.episodes val
+  episodes), each camera view of them apart: whether a slot finds the cube, by how much of the frame it fills."""
+  from roboshape.encoders import savi as savi_encoder  # pylint: disable=import-outside-toplevel
+  config = rundir.load_config(workdir)
+  model, params, _ = savi_encoder.load(workdir, config)
+  _, episodes = pretrain.data_source(config, workdir)
+  cameras, frames = tuple(config.env.cameras), config.pretrain.eval.frames
+  decompose = functools.partial(savi.decompose, model)
+  found = {}
+  for v, camera in enumerate(cameras):
+    segmentations, masks = [], []
+    for episode in episodes[v::len(cameras)]:
+      video = episode["image"][:frames]
+      out = jax.device_get(decompose(params, video[None], ids.robot_as_one(episode["segmentation"][:1])))
+      masks.append(decomposition.upsample_masks(out["masks"][0], model.input_pool))
+      segmentations.append(episode["segmentation"][:frames])
+    found[camera] = decomposition.found_by_area(np.concatenate(segmentations), np.concatenate(masks), ids.CUBE)
+  return found
+
+
+def area_table(found: Dict[str, list]) -> str:
+  """`cube_by_area`'s result as a markdown table, a row per camera and bin of the cube's share of the frame."""
+  lines = ["| view | the cube's share of the frame | frames | best slot's IoU | found (IoU >= "
+           f"{decomposition.FOUND_IOU}) |", "| --- | --- | --- | --- | --- |"]
+  for camera, rows in found.items():
+    lines += [f"| {camera} | {r['lo']:.1%} - {r['hi']:.1%} | {r['frames']} | {r['iou']:.2f} | {r['found']:.0%} |"
+              for r in rows if r["frames"]]
+  return "\n".join(lines)
+
+
+def main(argv) -> int:
+  parser = argparse.ArgumentParser(description="Whether the SAVi trained in a workdir finds the cube, by the cube's "
+                                               "share of the frame, on its validation frames, per camera view.")
+  parser.add_argument("workdir")
+  args = parser.parse_args(argv)
+  try:
+    print(area_table(cube_by_area(args.workdir)))
+  except errors.UserError as e:
+    return errors.print_error(e)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main(sys.argv[1:]))
