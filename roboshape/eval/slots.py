@@ -57,9 +57,8 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
   scored = []   # per episode: (fg_ari, its frames' FG-ARIs, mIoU, recon MSE, {object: best IoU per frame})
   for i, episode in enumerate(episodes):
     video = episode["image"][:frames]
-    out = jax.device_get(decompose(params, video[None], ids.robot_as_one(episode["segmentation"][:1])))
+    out, masks = _decomposed(decompose, params, episode, frames, pool)
     seg = ids.robot_as_one(episode["segmentation"][:frames])   # the robot is one object
-    masks = decomposition.upsample_masks(out["masks"][0], pool)         # at the segmentation's resolution
     best = {name: decomposition.best_slot_iou(episode["segmentation"][:frames], masks, object_id)
             for name, object_id in OBJECTS.items()}                     # the hand apart from the arm
     pooled = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, pool))
@@ -76,6 +75,14 @@ def evaluate(decompose: Decompose, params, episodes: Sequence[Dict[str, np.ndarr
     for v, view in enumerate(views):
       metrics.update({f"{key}_{view}": value for key, value in _summary(scored[v::len(views)]).items()})
   return metrics
+
+
+def _decomposed(decompose: Decompose, params, episode: Dict[str, np.ndarray], frames: int, pool: int):
+  """(the model's outputs on an episode's first `frames` frames, its masks [T, K, H, W] at the segmentation's
+  resolution)."""
+  out = jax.device_get(decompose(params, episode["image"][None, :frames],
+                                 ids.robot_as_one(episode["segmentation"][:1])))
+  return out, decomposition.upsample_masks(out["masks"][0], pool)
 
 
 def _summary(scored) -> Dict[str, float]:
@@ -144,9 +151,7 @@ def cube_by_area(workdir: str) -> Dict[str, list]:
   for v, camera in enumerate(cameras):
     segmentations, masks = [], []
     for episode in episodes[v::len(cameras)]:
-      video = episode["image"][:frames]
-      out = jax.device_get(decompose(params, video[None], ids.robot_as_one(episode["segmentation"][:1])))
-      masks.append(decomposition.upsample_masks(out["masks"][0], model.input_pool))
+      masks.append(_decomposed(decompose, params, episode, frames, model.input_pool)[1])
       segmentations.append(episode["segmentation"][:frames])
     found[camera] = decomposition.found_by_area(np.concatenate(segmentations), np.concatenate(masks), ids.CUBE)
   return found
