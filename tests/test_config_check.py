@@ -1,18 +1,18 @@
 """The config check before the first stage (roboshape/config_check.py, roboshape/stages.py): bad input is one line.
 
-Each bad input runs launch.py as a subprocess with every stage of its config: a value the check missed would start
+Each bad input runs launch.py as a command with every stage of its config: a value the check missed would start
 collecting, so the check must refuse it before that, with exit status 2, one `roboshape: error:` line naming the
-field, no traceback, and the workdir as it was.
+field, no traceback, and the workdir as it was. The commands run in a launch.py kept warm (tests/warm_launch.py):
+each is a process of its own, forked from one that has imported JAX once.
 """
 import glob
 import importlib
 import os
 import stat
-import subprocess
-import sys
 
 import pytest
 
+import warm_launch
 from configs import common
 from roboshape import rundir
 from roboshape import stages
@@ -70,10 +70,12 @@ BAD_CONFIGS = [
 ]
 
 
-def _launch(*args, workdir):
-  cmd = [sys.executable, "launch.py", *args, f"--workdir={workdir}"]
+@pytest.fixture(scope="module")
+def launch():
+  """launch.py as a command: `launch(*args, workdir=...)` -> subprocess.CompletedProcess."""
   env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"))
-  return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60, check=False, env=env)
+  with warm_launch.WarmLaunch(cwd=ROOT, env=env) as server:
+    yield lambda *args, workdir: server.run([*args, f"--workdir={workdir}"])
 
 
 def _snapshot(path):
@@ -103,22 +105,22 @@ def _assert_refused(out, expected):
 
 
 @pytest.mark.parametrize("args, expected", [c[1:] for c in BAD_CONFIGS], ids=[c[0] for c in BAD_CONFIGS])
-def test_a_bad_value_is_refused_before_any_stage_and_writes_nothing(tmp_path, args, expected):
+def test_a_bad_value_is_refused_before_any_stage_and_writes_nothing(launch, tmp_path, args, expected):
   workdir = tmp_path / "run"
-  _assert_refused(_launch(*args, workdir=workdir), expected)
+  _assert_refused(launch(*args, workdir=workdir), expected)
   assert not workdir.exists()
 
 
-def test_a_file_as_workdir_is_refused(tmp_path):
+def test_a_file_as_workdir_is_refused(launch, tmp_path):
   path = tmp_path / "notes.txt"
   path.write_text("mine\n")
-  _assert_refused(_launch(SAVI, workdir=path), "--workdir")
+  _assert_refused(launch(SAVI, workdir=path), "--workdir")
   assert path.read_text() == "mine\n"
-  _assert_refused(_launch(SAVI, workdir=path / "run"), "--workdir")
+  _assert_refused(launch(SAVI, workdir=path / "run"), "--workdir")
   assert path.read_text() == "mine\n"
 
 
-def test_a_read_only_workdir_is_refused(tmp_path):
+def test_a_read_only_workdir_is_refused(launch, tmp_path):
   workdir = tmp_path / "locked"
   workdir.mkdir()
   (workdir / "keep.txt").write_text("kept\n")
@@ -127,21 +129,21 @@ def test_a_read_only_workdir_is_refused(tmp_path):
     if os.access(workdir, os.W_OK):
       pytest.skip("permissions do not bind this user (root)")
     before = _snapshot(workdir)
-    _assert_refused(_launch(SAVI, workdir=workdir), "--workdir")
+    _assert_refused(launch(SAVI, workdir=workdir), "--workdir")
     assert _snapshot(workdir) == before
   finally:
     workdir.chmod(stat.S_IRWXU)
 
 
-def test_a_workdir_of_another_run_is_refused_and_kept_byte_identical(tmp_path):
+def test_a_workdir_of_another_run_is_refused_and_kept_byte_identical(launch, tmp_path):
   workdir = str(tmp_path / "push_r3m")
   rundir.save_config(common.get_config("push", "r3m", "tiny"), workdir)
   before = _snapshot(workdir)
-  line = _assert_refused(_launch(SAVI, workdir=workdir), "another --workdir")
+  line = _assert_refused(launch(SAVI, workdir=workdir), "another --workdir")
   assert "task: 'push'" in line and "encoder: 'r3m'" in line
   assert _snapshot(workdir) == before
   # A grid's workdir is another run too.
-  _assert_refused(_launch("--config=configs/reproduce.py:tiny", workdir=workdir), "another --workdir")
+  _assert_refused(launch("--config=configs/reproduce.py:tiny", workdir=workdir), "another --workdir")
   assert _snapshot(workdir) == before
 
 
@@ -167,10 +169,10 @@ def test_a_dataset_of_another_config_in_the_workdir_is_refused_before_config_jso
   assert _snapshot(workdir) == before       # config.json included: nothing was rewritten
 
 
-def test_the_same_run_resumed_with_other_settings_rewrites_its_config(tmp_path):
+def test_the_same_run_resumed_with_other_settings_rewrites_its_config(launch, tmp_path):
   workdir = str(tmp_path / "pick_savi")
   rundir.save_config(common.get_config("pick", "savi", "tiny"), workdir)
-  out = _launch(SAVI, "--config.stages=()", "--config.policy.train.steps=7", workdir=workdir)
+  out = launch(SAVI, "--config.stages=()", "--config.policy.train.steps=7", workdir=workdir)
   assert out.returncode == 0, out.stderr
   assert rundir.load_config(workdir).policy.train.steps == 7
 
