@@ -12,6 +12,7 @@ as `python launch.py ...`, without the interpreter's start-up and imports.
 import json
 import os
 import select
+import shutil
 import signal
 import subprocess
 import sys
@@ -83,9 +84,9 @@ class WarmLaunch:
     if self._proc.poll() is None:
       os.killpg(self._proc.pid, signal.SIGKILL)
       self._proc.wait()
-    for name in os.listdir(self._dir):
-      os.remove(os.path.join(self._dir, name))
-    os.rmdir(self._dir)
+    self._proc.stdin.close()
+    self._proc.stdout.close()
+    shutil.rmtree(self._dir, ignore_errors=True)   # once: a timeout closes before the fixture does
 
   def __enter__(self):
     return self
