@@ -120,6 +120,17 @@ def test_slot_permutation_leaves_actions_unchanged(trunk):
   np.testing.assert_allclose(apply(params, padded, frames), apply(params, tokens[:, :, :-1], frames), atol=1e-5)
 
 
+def test_slots_that_are_padding_in_every_frame_are_dropped_and_nothing_changes(trunk):
+  params, tokens, apply = trunk
+  frames = jnp.broadcast_to(jnp.arange(H), (2, H))
+  tokens = tokens.at[:, :, 1].set(0.0).at[:, 1:, 2].set(0.0)     # slot 1 padding everywhere, slot 2 in late frames
+  flat = np.asarray(tokens).reshape(2 * H, K, D)
+  np.testing.assert_array_equal(bc.present_slots(flat), [0, 2])
+  np.testing.assert_array_equal(bc.present_slots(flat[:, :2], flat[:1, :2] + 1.0), [0, 1])   # present in either
+  slots = bc.present_slots(flat)
+  np.testing.assert_allclose(apply(params, tokens[:, :, slots], frames), apply(params, tokens, frames), atol=1e-5)
+
+
 def test_act_token_sees_all_history_and_no_future(trunk):
   params, tokens, apply = trunk
   grad_fn = jax.jit(jax.grad(lambda x, q: jnp.sum(apply(params, x, jnp.full((2, 1), q)) ** 2)))

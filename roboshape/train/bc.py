@@ -95,6 +95,20 @@ def norm_stats(actions: np.ndarray) -> Dict[str, list]:
 # Windows of cached features.
 
 
+def present_slots(*features: np.ndarray) -> np.ndarray:
+  """Indices of the token slots (axis 1 of each features [F, N, D]) that hold a non-zero token in some frame.
+
+  A slot that is all zero in every frame is padding everywhere (an `objects` id that never appears, e.g. a
+  distractor beyond the level's count): the trunk masks padding out (roboshape/models/policy.py), so training on
+  the other slots alone gives the same outputs at a cost about proportional to the slots kept. At control time the
+  policy reads every slot, padding included, with the same outputs."""
+  kept = np.zeros(features[0].shape[1], bool)
+  for part in features:
+    for start in range(0, len(part), 65536):             # in chunks: a [F, N, D] boolean at once is large
+      kept |= np.any(part[start:start + 65536] != 0, axis=(0, 2))
+  return np.flatnonzero(kept) if kept.any() else np.arange(len(kept))
+
+
 def gripper_changes(actions: np.ndarray, offsets: np.ndarray) -> np.ndarray:
   """Frame indices [K] whose gripper command (sign of the last action entry) differs from the previous frame's in
   the same episode; `offsets` [E + 1] are the episodes' first frames. An episode's first frame is never one."""
@@ -360,10 +374,14 @@ def _fit(config, out: str, feature_path: str, ckpt: Checkpointer, seed: int) -> 
     stats = norm_stats(train_data["action"][valid_rows])
     fileio.atomic_write_json(stats_path, stats)
   normalise = (stats["scale"], stats["offset"])
+  slots, all_slots = present_slots(train_data["features"], val_data["features"]), train_data["features"].shape[1]
+  for data in (train_data, val_data):
+    data["features"] = data["features"][:, slots]
   train_w = Windows(train_data, pc.history, normalise, change_weight=tc.change_weight)
   val_w = Windows(val_data, pc.history, normalise)
   print(f"[train_policy] {train_w.num_episodes} train episodes ({len(train_w)} windows), "
-        f"{val_w.num_episodes} val episodes; tokens {train_data['features'].shape[1:]}", flush=True)
+        f"{val_w.num_episodes} val episodes; tokens {train_data['features'].shape[1:]} "
+        f"({all_slots - len(slots)} of {all_slots} slots dropped: padding in every frame)", flush=True)
 
   net = policy_lib.net_from_config(pc)
   optimizer, schedule = make_optimizer(tc), make_schedule(tc)
