@@ -15,10 +15,9 @@ setup:
 demo: setup
 	$(PY) launch.py --config=configs/reproduce.py:tiny --workdir=$(DEMO_WORKDIR)
 
-# Every core runs tests (-n auto). --dist worksteal: each worker starts on its own contiguous share of the suite, so a
-# module's tests, and the simulator workers and tiny runs its module fixtures start, mostly stay on one worker and
-# are set up once; a worker that runs out takes half of what another has left, so none waits at the end. The 25
-# slowest tests are listed at the end.
+# Every core runs tests (-n auto). --dist worksteal: each worker starts on its own contiguous share of the suite (a
+# module's tests mostly run in order on one worker), and a worker that runs out takes half of what another has
+# left, so neither waits long at the end. The 25 slowest tests are listed at the end.
 test: setup
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --dist worksteal --durations=25 tests
 
