@@ -26,6 +26,7 @@ from roboshape.data import dataset_path
 from roboshape.data import reader
 from roboshape.data import rlds
 from roboshape.data import validate
+from roboshape.envs import camera
 from roboshape.envs import ids
 from roboshape.envs import state as state_lib
 
@@ -501,6 +502,28 @@ def test_real_workers_give_the_same_episode_for_the_same_seed(real_dataset, sim_
   # The camera looks down at the table: the backdrop behind it is farther, the cube on it nearer than its far edge.
   assert np.median(depth[seg == 0]) > np.median(depth[seg == 1]) > 0
   assert depth[seg == 3].max() < depth[seg == 1].max() and 100 < depth.min() and depth.max() < 5000
+
+
+def test_the_closed_loop_sees_every_view_as_collected_and_the_wrist_cells_tokens_match(real_dataset, sim_pool):
+  """Replaying a stored episode's actions in the worker gives every camera's frames and the state, step by step, bit
+  for bit; and the run encoder of a two-camera objects cell with proprioception and `+rel` (the views, the
+  proprioception token, each front token's object relative to the hand) makes the same tokens of the live frames as
+  of the stored ones."""
+  stored = next(reader.read_episodes(real_dataset, "train"))
+  frames = [sim_pool.reset([stored["seed"]])]
+  for action in stored["action"][:-1]:                      # the last action is the episode's padding
+    frames.append(sim_pool.step(action[None]))
+  assert frames[-1]["success"][0]
+  for key in camera.all_keys(("front", "wrist")) + ("state",):
+    np.testing.assert_array_equal(np.stack([f[key][0] for f in frames]), stored[key], err_msg=key)
+  config = common.get_config("push", "objects", "small")
+  config.env.cameras, config.policy.proprio, config.policy.hand_relative = ("front", "wrist"), True, True
+  run_encoder = encoders.build_encoder(config, "")
+  assert set(run_encoder.inputs) >= {"wrist_image", "wrist_segmentation", "wrist_depth", "state"}
+  live = {k: np.stack([f[k][0] for f in frames])[None] for k in run_encoder.inputs}
+  tokens = np.asarray(run_encoder.encode_episode({k: stored[k] for k in run_encoder.inputs}))
+  assert np.abs(tokens).sum() > 0
+  np.testing.assert_allclose(tokens, np.asarray(run_encoder.encode_batch(live))[0], rtol=0, atol=1e-6)
 
 
 def test_a_wrist_grid_runs_every_stage_on_the_two_camera_dataset(real_dataset, sim_pool, tmp_path):
