@@ -211,6 +211,15 @@ class Checkpointer:
     stored = LEGACY if legacy else item
     as_saved = like is None or (legacy and item == PARAMS)
     with _quiet() as sink:
+      # A step whose metadata already shows other shapes (another config's model) is not read into `like`: that
+      # read would fail and leave reads behind to settle, which costs a second or more. Reading it as saved says
+      # whether it is intact, as below, and an intact read abandons nothing.
+      shapes = None if as_saved else self._other_shapes(step, stored, like)
+      if shapes:
+        damaged = not self._reads_as_saved(step, stored)
+        if damaged:
+          _settle(sink)
+        return None, _Failure(shapes, damaged)
       try:
         value = self._read(step, stored, None if as_saved else jax.tree.map(_target, like))
         if not (legacy and item == PARAMS):
@@ -224,6 +233,24 @@ class Checkpointer:
       if damaged and not as_saved:
         _settle(sink)
     return None, _Failure(reason, damaged)
+
+  def _other_shapes(self, step: int, stored: str, like: Any) -> Optional[str]:
+    """Why `like` cannot hold the item `stored` of `step`, when its metadata names the same arrays as `like` (by
+    their paths in the tree, as orbax stores them) and one of them with another shape; None when the shapes agree
+    or the metadata cannot tell (it does not read, or names other arrays: the restore itself then decides)."""
+    try:
+      metadata = self._manager.item_metadata(step)[stored]
+      saved = ocp.tree.to_flat_dict(getattr(metadata, "tree", metadata))
+      wanted = ocp.tree.to_flat_dict(ocp.tree.serialize_tree(like, keep_empty_nodes=True))
+    except Exception:  # pylint: disable=broad-except
+      return None
+    if set(saved) != set(wanted):
+      return None
+    for path in sorted(saved):
+      a, b = getattr(saved[path], "shape", None), getattr(wanted[path], "shape", None)
+      if a is not None and b is not None and tuple(a) != tuple(b):
+        return f"ValueError: saved {'/'.join(map(str, path))} of shape {tuple(a)}, expected {tuple(b)}"
+    return None
 
   def _reads_as_saved(self, step: int, stored: str) -> bool:
     try:
