@@ -553,7 +553,6 @@ def test_params_restore_alone_and_from_checkpoints_before_the_params_item(tmp_pa
         ckpt.restore_params({"w": jnp.zeros(5)}, step=3)
 
 
-
 def test_an_intact_step_of_other_shapes_is_refused_from_its_metadata_without_a_failed_read(tmp_path, monkeypatch):
   """A step whose metadata names the target's arrays with another shape is not read into the target (a read that
   fails leaves orbax's abandoned reads to settle, a second or more); it is refused as intact, naming the array and
@@ -570,13 +569,14 @@ def test_an_intact_step_of_other_shapes_is_refused_from_its_metadata_without_a_f
       ckpt.restore_params_latest({"b": jnp.zeros(2), "w": jnp.zeros(5)})
   assert "step 3" in str(e.value) and "is intact" in str(e.value)
   assert "saved w of shape (4,), expected (5,)" in str(e.value) and settles == []
-  for name in os.listdir(os.path.join(directory, "3", "params")):      # damage the arrays, keep the metadata
+  for name in os.listdir(os.path.join(directory, "3", "params")):      # damage it: its arrays' data folders removed
     if name.startswith(("ocdbt", "d")) and os.path.isdir(os.path.join(directory, "3", "params", name)):
       shutil.rmtree(os.path.join(directory, "3", "params", name))
   with checkpoint.Checkpointer(directory) as ckpt:
     with pytest.raises(UserError, match="every one is damaged"):
       ckpt.restore_params_latest({"b": jnp.zeros(2), "w": jnp.zeros(5)})
   assert settles
+
 
 def test_settling_after_a_failed_restore_frees_the_abandoned_reads_without_a_warning():
   """The coroutines of the reads a failed restore abandoned are freed by `_settle`'s collections; each would warn that
