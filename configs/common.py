@@ -111,8 +111,10 @@ def pretrain_config(variant: str) -> ml_collections.ConfigDict:
           clip_norm_of=_pick(variant, paper="sum", small="mean", tiny="mean"),   # "mean" or "sum" (SAVi's)
           # > 0: also reconstruct depth (metres), weighted so against the RGB MSE; needs env.depth=True data
           depth_weight=_pick(variant, paper=0.0, small=0.25, tiny=0.0),
-          # p > 0: a pixel's RGB error weighs its segment's share of the frame ** -p (small objects count more)
-          mask_weight=0.0,
+          # p > 0: a pixel's RGB error weighs its segment's share of the frame ** -p (small objects count more; it
+          # reads the segmentation in pretraining only). :small weighs every segment of a frame alike (p = 1), as the
+          # recipe study adopted (results/small/recipe/README.md)
+          mask_weight=_pick(variant, paper=0.0, small=1.0, tiny=0.0),
           checkpoint_every=_pick(variant, paper=1000, small=250, tiny=10),
           keep_checkpoints=3,
           log_every=_pick(variant, paper=50, small=10, tiny=1),

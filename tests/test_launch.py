@@ -145,7 +145,8 @@ def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields(t
   """A config.json of the former :small table (push x AE's, kept in tests/fixtures) holds SAVi's training settings in
   savi.train/savi.eval and the AE's frame model nowhere: read back (rundir.load_config), it has today's fields with
   their values, and the study finds no change against today's :small defaults but the recipe adopted since (200
-  demos then, 2000 now; a field it predates, such as policy.proprio, is none)."""
+  demos then, 2000 now; no frame pool; the plain reconstruction loss; a field it predates whose default has not
+  changed, such as policy.proprio, is none)."""
   import shutil  # pylint: disable=import-outside-toplevel
   from roboshape import rundir  # pylint: disable=import-outside-toplevel
   from roboshape import study  # pylint: disable=import-outside-toplevel
@@ -159,9 +160,11 @@ def test_a_config_json_from_before_the_pretrain_section_reads_in_todays_fields(t
   assert (config.pretrain.train.clip_norm, config.pretrain.train.clip_norm_of) == (0.05, "mean")
   assert config.pretrain.eval.frames == old["savi"]["eval"]["frames"] and "train" not in config.savi
   assert config.ae.encoder.to_dict() == old["savi"]["encoder"] and config.ae.pool == old["savi"]["pool"]
-  # the fields it predates read as the run ran (rundir.ADDED): the one whose :small default changed since is a change
+  # the fields it predates read as the run ran (rundir.ADDED): those whose :small default changed since are changes
   assert "frame_pool" not in old["policy"] and config.policy.frame_pool is False
-  assert study.changed_fields(config.to_dict()) == "data.train_episodes=200; policy.frame_pool=False"
+  assert "pretrain" not in old and config.pretrain.train.mask_weight == 0.0
+  assert study.changed_fields(config.to_dict()) == ("data.train_episodes=200; policy.frame_pool=False; "
+                                                    "pretrain.train.mask_weight=0.0")
   today = common.get_config("push", "ae", "small").to_dict()
   assert rundir.upgrade_config(today) == today                        # today's configs come back as they are
 
