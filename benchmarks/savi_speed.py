@@ -29,8 +29,9 @@ def synthetic_inputs(comp, shape):
   """(state, video, depth, first, key, pixel_weight) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B,
   T, H, W, 3], placed as the pretrain stage places them: the state replicated, the batch split. `depth` is the depth
   target (uint16 mm) of a variant that predicts depth (:small), else None; `first` the clips' first segmentation
-  [B, H, W] (random ids) of a conditional SAVi, else None; then the pixel weights: None (pretrain.train.mask_weight
-  weights pixels on the host at no measurable cost)."""
+  [B, H, W] (random ids) of a conditional SAVi, else None; then the pixel weights [B, T, H, W] of a loss weighted by
+  segment (pretrain.train.mask_weight > 0, :small's: ones, as the step's arithmetic does not depend on their values;
+  the pretrain stage computes them on the host), else None."""
   state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
   rng = np.random.default_rng(0)
   video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
@@ -41,7 +42,10 @@ def synthetic_inputs(comp, shape):
   if comp.conditional:
     first = jax.device_put(rng.integers(0, comp.model.num_slots, (shape[0], *shape[2:4]), dtype=np.uint8),
                            comp.dp.batch)
-  return state, video, depth, first, jax.random.key(1), None
+  weight = None
+  if comp.mask_weight > 0:
+    weight = jax.device_put(np.ones(shape[:-1], np.float32), comp.dp.batch)
+  return state, video, depth, first, jax.random.key(1), weight
 
 
 class Timed:
