@@ -29,9 +29,9 @@ def synthetic_inputs(comp, shape):
   """(state, video, depth, first, key, pixel_weight) for a pretrain step (pretrain.Compiled) on random uint8 clips of `shape` [B,
   T, H, W, 3], placed as the pretrain stage places them: the state replicated, the batch split. `depth` is the depth
   target (uint16 mm) of a variant that predicts depth (:small), else None; `first` the clips' first segmentation
-  [B, H, W] (random ids) of a conditional SAVi, else None; then the pixel weights [B, T, H, W] of a loss weighted by
-  segment (pretrain.train.mask_weight > 0, :small's: ones, as the step's arithmetic does not depend on their values;
-  the pretrain stage computes them on the host), else None."""
+  [B, H, W] (random ids) of a conditional SAVi, else None; then, where pretrain.train.mask_weight > 0 (:small), the
+  pixel weights [B, T, H, W]: ones, as the step's arithmetic does not depend on their values (the pretrain stage
+  computes them on the host from the segmentation), else None."""
   state = jax.device_put(comp.init_state(jax.random.key(0), shape), comp.dp.replicated)
   rng = np.random.default_rng(0)
   video = jax.device_put(rng.integers(0, 256, shape, dtype=np.uint8), comp.dp.batch)
