@@ -15,11 +15,11 @@ setup:
 demo: setup
 	$(PY) launch.py --config=configs/reproduce.py:tiny --workdir=$(DEMO_WORKDIR)
 
-# Every core runs tests (-n auto). --dist worksteal: each worker starts on its own contiguous share of the suite (a
-# module's tests mostly run in order on one worker), and a worker that runs out takes half of what another has
-# left, so neither waits long at the end. The 25 slowest tests are listed at the end.
+# Every core runs tests (-n auto). --dist loadscope: each module runs on one worker, so its fixtures are built once;
+# the modules start in the order tests/conftest.py gives them (longest first; --no-loadscope-reorder keeps it). The
+# 25 slowest tests are listed at the end.
 test: setup
-	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --dist worksteal --durations=25 tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n auto --dist loadscope --no-loadscope-reorder --durations=25 tests
 
 clean-demo:
 	rm -rf $(DEMO_WORKDIR)

@@ -18,6 +18,20 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 import numpy as np  # pylint: disable=wrong-import-position
 import pytest  # pylint: disable=wrong-import-position
 
+# How `make test` shares the suite between its workers (pytest-xdist, --dist loadscope): each module runs on one
+# worker, so its fixtures (a simulator pool, a trained SAVi) are built once. The modules start longest first, so the
+# last to start is short and neither worker waits long for the other at the end; the others follow in collection
+# order. A stale order only balances the workers less well.
+LONGEST_FIRST = ("test_savi", "test_data", "test_sim", "test_notebook", "test_devices", "test_policy",
+                 "test_reliability", "test_ae", "test_eval", "test_records", "test_baselines", "test_envs",
+                 "test_encoders", "test_lanes", "test_objects")
+
+
+def pytest_collection_modifyitems(items):
+  rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+  module = lambda item: os.path.splitext(os.path.basename(item.nodeid.split("::")[0]))[0]
+  items.sort(key=lambda item: rank.get(module(item), len(rank)))    # stable: each module's tests keep their order
+
 
 @contextlib.contextmanager
 def cheap_compiles():
@@ -92,11 +106,39 @@ def synthetic_dataset(tmp_path_factory):
                                    "val": [_synthetic_episode(1_000_000 + s) for s in range(2)]})
 
 
+@contextlib.contextmanager
+def _once_per_run(tmp_path_factory, name: str):
+  """For a session fixture that more than one module uses: yields (folder, done), where `folder` is the same for
+  every pytest-xdist worker of this run and `done` whether another worker already built the fixture there (the
+  modules may run on different workers, and the first builds it while the others wait). Outside xdist: a fresh
+  folder of this session, not built."""
+  if not os.environ.get("PYTEST_XDIST_WORKER"):          # set in each pytest-xdist worker
+    yield tmp_path_factory.mktemp(name), False
+    return
+  import fcntl  # pylint: disable=import-outside-toplevel
+  root = tmp_path_factory.getbasetemp().parent        # the workers' base folders share this one
+  folder, stamp = root / name, root / f"{name}.built"
+  with open(root / f"{name}.lock", "w") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    built = stamp.exists()
+    folder.mkdir(exist_ok=True)
+    yield folder, built
+    stamp.touch()
+
+
 @pytest.fixture(scope="session")
 def tiny_run(synthetic_dataset, tmp_path_factory):
   """The workdir of a whole tiny push x savi run: configs/push_savi.py:tiny on `synthetic_dataset` (16x16), through
   the stages pretrain, cache, train_policy and evaluate (one 10-step rollout at level train in a real simulator
-  worker, no videos). Compile-bound, so built at XLA's cheap optimisation level."""
+  worker, no videos); built once per test run. Compile-bound, so built at XLA's cheap optimisation level."""
+  with _once_per_run(tmp_path_factory, "tiny_run") as (folder, built):
+    workdir = str(folder / "push_savi")
+    if not built:
+      _build_tiny_run(synthetic_dataset, workdir)
+  return workdir
+
+
+def _build_tiny_run(synthetic_dataset: str, workdir: str) -> None:
   from configs import common  # pylint: disable=import-outside-toplevel
   from roboshape import stages  # pylint: disable=import-outside-toplevel
   config = common.get_config("push", "savi", "tiny")
@@ -105,10 +147,8 @@ def tiny_run(synthetic_dataset, tmp_path_factory):
   config.stages = ("pretrain", "cache", "train_policy", "evaluate")
   config.eval.levels, config.eval.rollouts_per_seed, config.eval.videos_per_level = ("train",), 1, 0
   config.sim.num_workers = 1
-  workdir = str(tmp_path_factory.mktemp("tiny_run") / "push_savi")
   with cheap_compiles():
     stages.run(config, workdir)
-  return workdir
 
 
 def fill_disk_at_checkpoint(monkeypatch, step: int) -> None:

@@ -2,11 +2,10 @@
 on a 2-core CPU, load and evaluate in a one-device process (a notebook's JAX), resume there, and resume over two
 devices again from what the one-device process saved. Each phase is a subprocess with its own device count."""
 import os
-import shutil
 import subprocess
 import sys
 
-from test_reliability import _copy_run, policy_run  # pylint: disable=unused-import
+from test_reliability import features_run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -137,9 +136,10 @@ def _phase(phase, devices, policy_dir, features, savi_dir, policy_steps, savi_st
   assert "does not restore" not in out.stderr and "damaged" not in out.stderr, out.stderr[-4000:]
 
 
-def test_a_policy_and_a_savi_trained_on_two_devices_load_evaluate_and_resume_on_one_and_back(policy_run, tmp_path):
-  workdir, features = _copy_run(policy_run, tmp_path)
-  shutil.rmtree(os.path.join(workdir, "policy"))            # the cached features stay: a policy to train afresh
+def test_a_policy_and_a_savi_trained_on_two_devices_load_evaluate_and_resume_on_one_and_back(tmp_path):
+  workdir = str(tmp_path / "run")
+  os.makedirs(workdir)
+  _, features = features_run(workdir)                       # cached toy features: a policy to train from scratch
   savi_dir, results = str(tmp_path / "savi_run"), str(tmp_path / "results")
   os.makedirs(results)
   _phase("train", 2, workdir, features, savi_dir, 10, 2, results)   # over two devices, as launch.py on 2 cores

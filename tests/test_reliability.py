@@ -196,13 +196,11 @@ def _policy_config(steps=20):
   return config
 
 
-@pytest.fixture(scope="module")
-def policy_run(tmp_path_factory):
-  """A workdir with a toy-encoder feature cache and a tiny policy trained 20 steps (checkpoints 10 and 20)."""
+def features_run(workdir):
+  """Writes into `workdir` a tiny pick dataset (2 train + the same 2 as val episodes), the run's config.json and the
+  toy encoder's feature cache: (config, the feature cache's path)."""
   import numpy as np  # pylint: disable=import-outside-toplevel
-  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
   from roboshape.train import cache  # pylint: disable=import-outside-toplevel
-  workdir = str(tmp_path_factory.mktemp("policy_run"))
   config = _policy_config()
   rng = np.random.default_rng(0)
   episodes = [dict(task="pick", level="train", seed=s, success=True, env_version="test", terminated=True,
@@ -213,7 +211,16 @@ def policy_run(tmp_path_factory):
   rlds.write_dataset(data_lib.dataset_path(config, workdir), {"train": episodes, "val": episodes})
   with open(os.path.join(workdir, "config.json"), "w") as f:
     f.write(config.to_json())
-  features = cache.build(config, workdir, _toy_encoder())
+  return config, cache.build(config, workdir, _toy_encoder())
+
+
+@pytest.fixture(scope="module")
+def policy_run(tmp_path_factory):
+  """A workdir with a toy-encoder feature cache (`features_run`) and a tiny policy trained 20 steps (checkpoints 10
+  and 20)."""
+  from roboshape.train import bc  # pylint: disable=import-outside-toplevel
+  workdir = str(tmp_path_factory.mktemp("policy_run"))
+  config, features = features_run(workdir)
   bc.train(config, workdir, features)
   return dict(workdir=workdir, config=config, features=os.path.basename(features))
 
