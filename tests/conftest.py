@@ -22,9 +22,9 @@ import pytest  # pylint: disable=wrong-import-position
 # worker, so its fixtures (a simulator pool, a trained SAVi) are built once. The modules start longest first, so the
 # last to start is short and neither worker waits long for the other at the end; the others follow in collection
 # order. A stale order only balances the workers less well.
-LONGEST_FIRST = ("test_savi", "test_data", "test_sim", "test_notebook", "test_devices", "test_policy",
-                 "test_reliability", "test_ae", "test_eval", "test_records", "test_baselines", "test_envs",
-                 "test_encoders", "test_lanes", "test_objects")
+LONGEST_FIRST = ("test_savi", "test_data", "test_reliability", "test_devices", "test_notebook", "test_policy",
+                 "test_sim", "test_ae", "test_eval", "test_encoders", "test_records", "test_envs", "test_lanes",
+                 "test_baselines", "test_objects")
 
 
 def pytest_collection_modifyitems(items):

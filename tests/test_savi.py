@@ -518,8 +518,8 @@ def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   key = jax.random.key(2)
   state = comp.init_state(jax.random.key(1), video.shape)
   new_state, metrics = comp.train_step(state, video, depth, None, key)
-  out = comp.model.apply({"params": state["params"]}, video.astype(np.float32) / 255.0,
-                         rngs={"slots": jax.random.fold_in(key, 0)})
+  out = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, v, rngs={"slots": k}))(
+      state["params"], video.astype(np.float32) / 255.0, jax.random.fold_in(key, 0))
   want = float(np.mean((np.asarray(out["depth"]) - depth / 1000.0) ** 2))
   np.testing.assert_allclose(float(metrics["depth_mse"]), want, rtol=1e-4)
   np.testing.assert_allclose(float(metrics["loss"]), float(metrics["recon_mse"]) + 0.5 * want, rtol=1e-5)
@@ -553,8 +553,8 @@ def test_a_mask_weighted_train_step_minimises_the_weighted_mse():
   key = jax.random.key(2)
   state = comp.init_state(jax.random.key(1), video.shape)
   _, metrics = comp.train_step(state, video, None, None, key, weight)
-  out = comp.model.apply({"params": state["params"]}, video.astype(np.float32) / 255.0,
-                         rngs={"slots": jax.random.fold_in(key, 0)})
+  out = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, v, rngs={"slots": k}))(
+      state["params"], video.astype(np.float32) / 255.0, jax.random.fold_in(key, 0))
   frames = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, comp.model.input_pool))
   pooled = np.asarray(savi.pool_frames(weight[..., None], comp.model.input_pool))
   error = (np.asarray(out["recon"]) - frames) ** 2
