@@ -108,10 +108,10 @@ def synthetic_dataset(tmp_path_factory):
 
 @contextlib.contextmanager
 def _once_per_run(tmp_path_factory, name: str):
-  """For a session fixture that more than one module uses: yields (folder, done), where `folder` is the same for
-  every pytest-xdist worker of this run and `done` whether another worker already built the fixture there (the
-  modules may run on different workers, and the first builds it while the others wait). Outside xdist: a fresh
-  folder of this session, not built."""
+  """For a session fixture that more than one module uses: yields (folder, built), where `folder` is the same for
+  every pytest-xdist worker of this run and `built` whether another worker already built the fixture there (the
+  modules may run on different workers: the first builds it while the others wait). Outside xdist: a fresh folder
+  of this session, not built."""
   if not os.environ.get("PYTEST_XDIST_WORKER"):          # set in each pytest-xdist worker
     yield tmp_path_factory.mktemp(name), False
     return

@@ -508,6 +508,13 @@ def test_a_depth_decoder_mixes_each_slots_depth_by_the_masks():
     np.testing.assert_array_equal(plain[key], out[key])
 
 
+def _forward(comp, params, video, key):
+  """The model's outputs on `video` (uint8 [B, L, H, W, 3]) with slot noise `key`: one compiled call (run op by op,
+  the forward compiles each of its many small operations apart)."""
+  apply = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, v, rngs={"slots": k}))
+  return apply(params, video.astype(np.float32) / 255.0, key)
+
+
 def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   """loss = recon MSE + depth_weight * depth MSE (metres), the depth MSE as computed by hand, and it falls on one clip."""
   config = tiny_config()
@@ -518,8 +525,7 @@ def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
   key = jax.random.key(2)
   state = comp.init_state(jax.random.key(1), video.shape)
   new_state, metrics = comp.train_step(state, video, depth, None, key)
-  out = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, v, rngs={"slots": k}))(
-      state["params"], video.astype(np.float32) / 255.0, jax.random.fold_in(key, 0))
+  out = _forward(comp, state["params"], video, jax.random.fold_in(key, 0))
   want = float(np.mean((np.asarray(out["depth"]) - depth / 1000.0) ** 2))
   np.testing.assert_allclose(float(metrics["depth_mse"]), want, rtol=1e-4)
   np.testing.assert_allclose(float(metrics["loss"]), float(metrics["recon_mse"]) + 0.5 * want, rtol=1e-5)
@@ -553,8 +559,7 @@ def test_a_mask_weighted_train_step_minimises_the_weighted_mse():
   key = jax.random.key(2)
   state = comp.init_state(jax.random.key(1), video.shape)
   _, metrics = comp.train_step(state, video, None, None, key, weight)
-  out = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, v, rngs={"slots": k}))(
-      state["params"], video.astype(np.float32) / 255.0, jax.random.fold_in(key, 0))
+  out = _forward(comp, state["params"], video, jax.random.fold_in(key, 0))
   frames = np.asarray(savi.pool_frames(video.astype(np.float32) / 255.0, comp.model.input_pool))
   pooled = np.asarray(savi.pool_frames(weight[..., None], comp.model.input_pool))
   error = (np.asarray(out["recon"]) - frames) ** 2
