@@ -511,8 +511,8 @@ def test_a_depth_decoder_mixes_each_slots_depth_by_the_masks():
 def _forward(comp, params, video, key):
   """The model's outputs on `video` (uint8 [B, L, H, W, 3]) with slot noise `key`: one compiled call (run op by op,
   the forward compiles each of its many small operations apart)."""
-  apply = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, v, rngs={"slots": k}))
-  return apply(params, video.astype(np.float32) / 255.0, key)
+  apply = jax.jit(lambda p, v, k: comp.model.apply({"params": p}, savi.to_float(v), rngs={"slots": k}))
+  return apply(params, video, key)
 
 
 def test_a_depth_weighted_train_step_adds_the_depth_mse_and_learns_depth():
