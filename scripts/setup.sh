@@ -9,6 +9,7 @@ cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3.11}
 VENV=.venv
+PIP_VERSION=26.3
 say() { printf 'setup: %s\n' "$*" >&2; }
 die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
 
@@ -18,6 +19,10 @@ stamp="$VENV/.requirements-$req_hash"
 if [ ! -f "$stamp" ]; then
   say "creating $VENV and installing requirements.txt (about 2 minutes on a fresh machine)"
   [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV" || die "could not create $VENV; install python3.11-venv."
+  # The pip that Python 3.11's venv bundles spends most of the install choosing among the index's files (it checks
+  # every wheel's tags one by one); a current pip, installed first, resolves the same set of packages several times
+  # faster.
+  "$VENV/bin/pip" install --quiet --disable-pip-version-check "pip==$PIP_VERSION" || die "could not install pip $PIP_VERSION into $VENV."
   # --no-compile: Python compiles a module's bytecode when it is first imported (the Makefile keeps it even under
   # PYTHONDONTWRITEBYTECODE), so set-up does not compile the many modules of TensorFlow, torch and JAX that
   # roboshape never imports

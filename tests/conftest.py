@@ -14,6 +14,12 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(ROOT, ".pytest_c
 # Every program is kept, not only those that took over a second to compile (JAX's default): the suite's programs
 # are small, and most of its compile time is many sub-second compiles that other tests and processes repeat.
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+# XLA:CPU's older kernel emitters rather than its MLIR fusion emitters, for the suite and the processes it starts:
+# they compile small programs such as the suite's faster, most of all at the cheap optimisation level
+# (`cheap_compiles`), and a fresh clone's suite spends much of its time compiling (benchmarks/xla_emitters.py --suite
+# measures both kinds side by side). launch.py keeps XLA's default. An XLA_FLAGS that already chooses wins.
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+  os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
 
 import numpy as np  # pylint: disable=wrong-import-position
 import pytest  # pylint: disable=wrong-import-position
@@ -22,9 +28,9 @@ import pytest  # pylint: disable=wrong-import-position
 # worker, so its fixtures (a simulator pool, a trained SAVi) are built once. The modules start longest first, so the
 # last to start is short and neither worker waits long for the other at the end; the others follow in collection
 # order. A stale order only balances the workers less well.
-LONGEST_FIRST = ("test_savi", "test_data", "test_reliability", "test_devices", "test_notebook", "test_policy",
-                 "test_sim", "test_ae", "test_eval", "test_encoders", "test_records", "test_envs", "test_lanes",
-                 "test_baselines", "test_objects")
+LONGEST_FIRST = ("test_savi", "test_data", "test_sim", "test_policy", "test_notebook", "test_reliability",
+                 "test_devices", "test_eval", "test_envs", "test_ae", "test_encoders", "test_baselines", "test_lanes",
+                 "test_records", "test_objects")
 
 
 def pytest_collection_modifyitems(items):

@@ -127,8 +127,8 @@ print("phase", phase, "ok")
 
 
 def _phase(phase, devices, policy_dir, features, savi_dir, policy_steps, savi_steps, results):
-  env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-             PYTHONPATH=ROOT)
+  flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
+  env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=flags.strip(), PYTHONPATH=ROOT)
   out = subprocess.run([sys.executable, "-c", _PHASE, phase, str(devices), policy_dir, features, savi_dir,
                         str(policy_steps), str(savi_steps), results], cwd=ROOT, env=env, capture_output=True,
                        text=True, timeout=600, check=False)

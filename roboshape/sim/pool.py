@@ -126,7 +126,8 @@ class SimPool:
   Args:
     spec: the env every worker builds.
     num_workers: number of worker processes (0: os.cpu_count()); pool.num_envs equals it.
-    start_timeout: seconds a worker may take to build its env (the first render compiles shaders).
+    start_timeout: seconds a worker may take to build its env (its first picture also renders SAPIEN's BRDF
+      lookup table, seconds on a CPU).
     step_timeout: seconds a worker may take for one reset / step.
     episode_timeout: seconds a worker may take for one expert episode in `collect`.
   """
